@@ -1,0 +1,44 @@
+"""Input checks shared by the public functions (validation at the boundary only)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def check_points(points, name: str, min_points: int = 3, geometry: bool = True) -> np.ndarray:
+    """Return ``points`` as a float (n, 2) array or raise a one-line ValueError.
+
+    ``geometry`` adds the checks a triangulation needs: no duplicate points and
+    not all points on one line.
+    """
+    try:
+        arr = np.asarray(points, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be an (n, 2) array of numbers") from None
+    if arr.ndim != 2 or arr.shape[1] != 2:
+        raise ValueError(f"{name} must have shape (n, 2), got {arr.shape}")
+    if arr.shape[0] < min_points:
+        raise ValueError(f"{name} needs at least {min_points} points, got {arr.shape[0]}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} contains NaN or inf; all coordinates must be finite")
+    if geometry:
+        if np.unique(arr, axis=0).shape[0] != arr.shape[0]:
+            raise ValueError(f"{name} contains duplicate points; landmarks must be distinct")
+        centred = arr - arr.mean(axis=0)
+        s = np.linalg.svd(centred, compute_uv=False)
+        if s[1] <= 1e-12 * max(s[0], 1e-300):
+            raise ValueError(f"{name} points are all collinear; a triangulation needs 2-D spread")
+    return arr
+
+
+def check_sigma(sigma, name: str = "sigma") -> float:
+    """Return ``sigma`` as a positive finite float or raise ValueError."""
+    try:
+        value = float(sigma)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a positive number, got {sigma!r}") from None
+    if not math.isfinite(value) or value <= 0:
+        raise ValueError(f"{name} must be a positive finite number, got {sigma!r}")
+    return value

@@ -1,0 +1,79 @@
+"""Maximum-likelihood combined map (paper eq. 15).
+
+From the matched landmark set K, the n-point closed form gives θ*, t* and
+the fused landmarks µ*. The combined map, in map p's frame, is
+
+    [ µ* ;  p-only landmarks ;  R(θ*)ᵀ (q-only landmarks - t*) ]
+
+and every row records where it came from.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .statistic import Alignment, _align, rotation
+
+
+@dataclass(frozen=True)
+class CombinedMap:
+    """Rows of the combined map with their provenance.
+
+    Attributes
+    ----------
+    points : (N, 2) ndarray
+        Landmarks in map p's frame.
+    origin : (N,) ndarray of str
+        ``"fused"``, ``"p"`` or ``"q"``.
+    index_p, index_q : (N,) int ndarray
+        Source landmark index in map p / map q, -1 where there is none.
+    """
+
+    points: np.ndarray
+    origin: np.ndarray
+    index_p: np.ndarray
+    index_q: np.ndarray
+
+
+def combine_maps(P: np.ndarray, Q: np.ndarray, pairs: np.ndarray, sigma: float):
+    """Align on the paired landmarks and build the combined map (15).
+
+    Parameters
+    ----------
+    P, Q : (n_p, 2), (n_q, 2) ndarray
+        The two maps, validated.
+    pairs : (K, 2) int ndarray
+        One-to-one landmark correspondences (p index, q index), K >= 2.
+    sigma : float
+        Noise standard deviation.
+
+    Returns
+    -------
+    alignment : Alignment
+    combined : CombinedMap
+    """
+    alignment: Alignment = _align(P[pairs[:, 0]], Q[pairs[:, 1]], sigma)
+    only_p = np.setdiff1d(np.arange(P.shape[0]), pairs[:, 0])
+    only_q = np.setdiff1d(np.arange(Q.shape[0]), pairs[:, 1])
+    q_in_p = (Q[only_q] - alignment.t) @ rotation(alignment.theta)
+    k, n_p, n_q = pairs.shape[0], only_p.size, only_q.size
+    combined = CombinedMap(
+        points=np.concatenate([alignment.mu, P[only_p], q_in_p]),
+        origin=np.array(["fused"] * k + ["p"] * n_p + ["q"] * n_q, dtype=object),
+        index_p=np.concatenate([pairs[:, 0], only_p, np.full(n_q, -1)]).astype(np.intp),
+        index_q=np.concatenate([pairs[:, 1], np.full(n_p, -1), only_q]).astype(np.intp),
+    )
+    return alignment, combined
+
+
+def p_only_map(P: np.ndarray) -> CombinedMap:
+    """The combined map when nothing matched: map p alone, in its own frame."""
+    n = P.shape[0]
+    return CombinedMap(
+        points=P.copy(),
+        origin=np.array(["p"] * n, dtype=object),
+        index_p=np.arange(n, dtype=np.intp),
+        index_q=np.full(n, -1, dtype=np.intp),
+    )

@@ -1,0 +1,145 @@
+"""Bipartite matching of triangles (paper eq. 14), the τ test, correspondences.
+
+The LP (14) has an integral optimum, so it is solved as an assignment
+problem with ``scipy.optimize.linear_sum_assignment``. A rectangular score
+matrix is the LP with ``N = max(Np, Nq)`` padded by zero-score dummies: the
+surplus triangles stay unmatched.
+
+The paper maximises Σ Λ (``objective="lr"``). Maximising Σ log Λ
+(``objective="loglr"``) is the other natural reading; with a forced full
+assignment it lets hopeless pairs' huge negative scores push true pairs out,
+which the harness measures.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+from scipy.stats import chi2
+
+OBJECTIVES = ("lr", "loglr")
+
+#: Degrees of freedom of -2 log Λ for a true triangle pair (2n - 3, n = 3).
+TRIANGLE_DOF = 3
+
+
+def log_tau_from_chi2(p_miss: float, dof: int = TRIANGLE_DOF) -> float:
+    """Threshold log τ that rejects a fraction ``p_miss`` of true pairs.
+
+    Under H1, ``-2 log Λ ~ χ²_dof``, so ``log τ = -½ χ²_dof⁻¹(1 - p_miss)``.
+    """
+    if not 0.0 < p_miss < 1.0:
+        raise ValueError(f"tau chi2 tail probability must be in (0, 1), got {p_miss!r}")
+    return -0.5 * float(chi2.isf(p_miss, dof))
+
+
+def resolve_log_tau(tau) -> float:
+    """Turn a threshold setting into a log-likelihood-ratio value.
+
+    Parameters
+    ----------
+    tau : float or str
+        A number is log τ itself (a log-LR, normally <= 0; ``-inf`` declares
+        every tentative pair). A string ``"chi2:P"`` is a χ²₃ tail
+        probability P in (0, 1): the fraction of true, order-consistent
+        triangle pairs the test may reject.
+
+    Returns
+    -------
+    float
+
+    Raises
+    ------
+    ValueError
+        If ``tau`` is neither form.
+    """
+    bad = f"tau must be a log-LR number or 'chi2:P' with P in (0, 1), got {tau!r}"
+    if isinstance(tau, str) and tau.strip().startswith("chi2:"):
+        try:
+            p = float(tau.strip()[len("chi2:"):])
+        except ValueError:
+            raise ValueError(bad) from None
+        return log_tau_from_chi2(p)
+    try:
+        value = float(tau)
+    except (TypeError, ValueError):
+        raise ValueError(bad) from None
+    if np.isnan(value) or value == np.inf:
+        raise ValueError(bad)
+    return value
+
+
+def assign(log_lr: np.ndarray, objective: str = "lr") -> np.ndarray:
+    """Tentative triangle pairs from the assignment LP (14).
+
+    Parameters
+    ----------
+    log_lr : (Tp, Tq) ndarray
+        Pairwise log Λ.
+    objective : {"lr", "loglr"}
+        Maximise Σ Λ (the paper) or Σ log Λ.
+
+    Returns
+    -------
+    (min(Tp, Tq), 2) int ndarray
+        Rows ``(i, j)``: triangle i of p tentatively paired with j of q,
+        sorted by i.
+    """
+    if objective not in OBJECTIVES:
+        raise ValueError(f"objective must be one of {OBJECTIVES}, got {objective!r}")
+    # Λ = exp(log Λ) underflows to 0 for hopeless pairs: they are then exact
+    # ties at zero weight, which is what Σ Λ means for them.
+    weight = np.exp(log_lr) if objective == "lr" else log_lr
+    rows, cols = linear_sum_assignment(weight, maximize=True)
+    return np.stack([rows, cols], axis=1).astype(np.intp)
+
+
+def correspondences(vertices_p, vertices_q, triangle_pairs, declared, log_lr):
+    """Landmark correspondences implied by declared triangle pairs.
+
+    Each declared pair gives three correspondences, vertex i to vertex i.
+    When a landmark ends up paired with two different partners, the
+    correspondence supported by more declared triangles wins, then the one
+    with the higher best triangle log Λ, then the lower indices; the losers
+    are dropped and counted.
+
+    Parameters
+    ----------
+    vertices_p, vertices_q : (Tp, 3), (Tq, 3) int ndarray
+        Groth-ordered triangle vertices of each map.
+    triangle_pairs : (M, 2) int ndarray
+        Tentative triangle pairs.
+    declared : (M,) bool ndarray
+        Which pairs passed the threshold.
+    log_lr : (M,) ndarray
+        Their scores.
+
+    Returns
+    -------
+    pairs : (K, 2) int ndarray
+        One-to-one landmark index pairs (p, q), sorted by p index.
+    n_conflicts : int
+        Distinct candidate correspondences dropped as conflicting.
+    """
+    chosen = triangle_pairs[declared]
+    if chosen.shape[0] == 0:
+        return np.empty((0, 2), dtype=np.intp), 0
+    cand = np.stack(
+        [vertices_p[chosen[:, 0]].ravel(), vertices_q[chosen[:, 1]].ravel()], axis=1
+    )
+    score = np.repeat(log_lr[declared], 3)
+    uniq, inverse, votes = np.unique(cand, axis=0, return_inverse=True, return_counts=True)
+    best = np.full(uniq.shape[0], -np.inf)
+    np.maximum.at(best, inverse.ravel(), score)
+    order = np.lexsort((uniq[:, 1], uniq[:, 0], -best, -votes))
+    used_p, used_q, keep = set(), set(), []
+    for k in order:  # K is a few landmarks per declared triangle, not pairs
+        i, j = int(uniq[k, 0]), int(uniq[k, 1])
+        if i in used_p or j in used_q:
+            continue
+        used_p.add(i)
+        used_q.add(j)
+        keep.append(k)
+    pairs = uniq[np.sort(np.asarray(keep))]
+    pairs = pairs[np.argsort(pairs[:, 0], kind="stable")]
+    return pairs.astype(np.intp), int(uniq.shape[0] - len(keep))

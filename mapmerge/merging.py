@@ -1,0 +1,183 @@
+"""Match and merge two stochastic landmark maps: the whole pipeline.
+
+``merge_maps`` runs the paper's algorithm end to end: triangulate both maps
+(Groth order), score every triangle pair with the closed-form GLRT, solve the
+assignment LP (14), declare the tentative pairs whose log Λ passes log τ, turn
+them into one-to-one landmark correspondences, align with the n-point closed
+form and build the combined map (15).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ._validation import check_points, check_sigma
+from .combining import CombinedMap, combine_maps, p_only_map
+from .matching import OBJECTIVES, assign, correspondences, resolve_log_tau
+from .statistic import Alignment, pairwise_cost
+from .triangles import Triangles, _triangulate
+
+METHODS = ("paper",)
+
+#: Fewest landmark correspondences accepted as a match: one triangle's worth.
+MIN_MATCHED_LANDMARKS = 3
+
+#: Default threshold: reject 1 % of true, order-consistent triangle pairs.
+DEFAULT_TAU = "chi2:0.01"
+
+
+@dataclass(frozen=True)
+class MergeResult:
+    """Outcome of ``merge_maps``.
+
+    Attributes
+    ----------
+    matched : bool
+        False when no triangle pair passed τ ("no match"): then ``theta`` and
+        ``t`` are NaN, ``alignment`` is None and ``merged`` is map p alone.
+    theta : float
+        Rotation of map q relative to map p (``q ≈ R(θ) p + t``).
+    t : (2,) ndarray
+        Translation.
+    pairs : (K, 2) int ndarray
+        Landmark correspondences (p index, q index).
+    n_conflicts : int
+        Correspondences dropped because a landmark was claimed twice.
+    triangle_pairs : (M, 2) int ndarray
+        Tentative triangle pairs from the LP (indices into ``tri_p``/``tri_q``).
+    triangle_log_lr : (M,) ndarray
+        Their log Λ.
+    declared : (M,) bool ndarray
+        ``triangle_log_lr >= log_tau``.
+    log_tau : float
+        The threshold used, as a log-LR.
+    merged : (N, 2) ndarray
+        The combined map in p's frame; ``origin``, ``index_p``, ``index_q``
+        give each row's provenance.
+    """
+
+    matched: bool
+    theta: float
+    t: np.ndarray
+    pairs: np.ndarray
+    n_conflicts: int
+    triangle_pairs: np.ndarray
+    triangle_log_lr: np.ndarray
+    declared: np.ndarray
+    log_tau: float
+    tri_p: Triangles
+    tri_q: Triangles
+    alignment: Alignment | None
+    combined: CombinedMap
+
+    @property
+    def merged(self) -> np.ndarray:
+        return self.combined.points
+
+    @property
+    def origin(self) -> np.ndarray:
+        return self.combined.origin
+
+    @property
+    def index_p(self) -> np.ndarray:
+        return self.combined.index_p
+
+    @property
+    def index_q(self) -> np.ndarray:
+        return self.combined.index_q
+
+
+def merge_maps(P, Q, sigma, tau=DEFAULT_TAU, method="paper", objective="lr") -> MergeResult:
+    """Match two landmark maps and build their maximum-likelihood combination.
+
+    Parameters
+    ----------
+    P, Q : (n, 2) array_like
+        Landmark estimates of map p and map q, each in its own frame; n >= 3,
+        finite, distinct, not all collinear.
+    sigma : float
+        Known per-coordinate noise standard deviation, > 0.
+    tau : float or str, default ``"chi2:0.01"``
+        Threshold: a log-LR value, or ``"chi2:P"`` for the χ²₃ rule
+        ``log τ = -½ χ²₃⁻¹(1 - P)``.
+    method : {"paper"}
+        Matcher variant.
+    objective : {"lr", "loglr"}
+        LP objective: Σ Λ as in the paper, or Σ log Λ.
+
+    Returns
+    -------
+    MergeResult
+
+    Raises
+    ------
+    ValueError
+        On invalid maps, ``sigma``, ``tau``, ``method`` or ``objective``.
+    """
+    P = check_points(P, "P")
+    Q = check_points(Q, "Q")
+    sigma = check_sigma(sigma)
+    log_tau = resolve_log_tau(tau)
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    if objective not in OBJECTIVES:
+        raise ValueError(f"objective must be one of {OBJECTIVES}, got {objective!r}")
+
+    return merge_at(P, Q, sigma, match_triangles(P, Q, sigma, objective), log_tau)
+
+
+@dataclass(frozen=True)
+class TriangleMatch:
+    """Triangles of both maps and the LP's tentative pairs with their scores."""
+
+    tri_p: Triangles
+    tri_q: Triangles
+    triangle_pairs: np.ndarray
+    triangle_log_lr: np.ndarray
+
+
+def match_triangles(P: np.ndarray, Q: np.ndarray, sigma: float, objective: str) -> TriangleMatch:
+    """Triangulate, score every pair and solve the LP (inputs already valid).
+
+    The τ-independent part of ``merge_maps``: callers comparing several
+    thresholds on one map pair run it once and ``merge_at`` per τ.
+    """
+    tri_p, tri_q = _triangulate(P), _triangulate(Q)
+    log_lr = -pairwise_cost(tri_p.coords, tri_q.coords) / (2.0 * sigma**2)
+    triangle_pairs = assign(log_lr, objective)
+    scores = log_lr[triangle_pairs[:, 0], triangle_pairs[:, 1]]
+    return TriangleMatch(tri_p, tri_q, triangle_pairs, scores)
+
+
+def merge_at(
+    P: np.ndarray, Q: np.ndarray, sigma: float, match: TriangleMatch, log_tau: float
+) -> MergeResult:
+    """Declare, associate landmarks and combine at one threshold log τ."""
+    scores = match.triangle_log_lr
+    declared = scores >= log_tau
+    pairs, n_conflicts = correspondences(
+        match.tri_p.vertices, match.tri_q.vertices, match.triangle_pairs, declared, scores
+    )
+    if pairs.shape[0] < MIN_MATCHED_LANDMARKS:
+        alignment, combined = None, p_only_map(P)
+        theta, t = float("nan"), np.full(2, np.nan)
+    else:
+        alignment, combined = combine_maps(P, Q, pairs, sigma)
+        theta, t = alignment.theta, alignment.t
+    return MergeResult(
+        matched=alignment is not None,
+        theta=theta,
+        t=t,
+        pairs=pairs,
+        n_conflicts=n_conflicts,
+        triangle_pairs=match.triangle_pairs,
+        triangle_log_lr=scores,
+        declared=declared,
+        log_tau=log_tau,
+        tri_p=match.tri_p,
+        tri_q=match.tri_q,
+        alignment=alignment,
+        combined=combined,
+    )

@@ -1,0 +1,52 @@
+import numpy as np
+import pytest
+
+import mapmerge as mm
+from mapmerge import metrics
+
+
+def test_roc_matches_brute_force(rng):
+    y = rng.random(300) < 0.3
+    s = np.round(rng.normal(size=300) + 1.5 * y, 1)  # rounding creates ties
+    fpr, tpr, thr = metrics.roc_curve(y, s)
+    assert thr[0] == np.inf and np.all(np.diff(thr) < 0)
+    for f, t, th in zip(fpr, tpr, thr):
+        dec = s >= th
+        assert t == pytest.approx(np.mean(dec[y]))
+        assert f == pytest.approx(np.mean(dec[~y]))
+    assert fpr[-1] == tpr[-1] == 1.0
+    # AUC equals the Mann-Whitney probability (ties count one half).
+    pos, neg = s[y][:, None], s[~y][None, :]
+    assert metrics.auc(fpr, tpr) == pytest.approx(np.mean((pos > neg) + 0.5 * (pos == neg)))
+
+
+def test_roc_rejects_bad_input():
+    with pytest.raises(ValueError, match="same length"):
+        metrics.roc_curve([True, False], [0.1])
+    with pytest.raises(ValueError, match="NaN"):
+        metrics.roc_curve([True, False], [np.nan, 0.1])
+
+
+def test_oracle_tau_gives_zero_fp(rng):
+    y = rng.random(200) < 0.4
+    s = rng.normal(size=200) + 2 * y
+    lt = metrics.oracle_log_tau(y, s)
+    c = metrics.detection_counts(y, s >= lt, n_common=int(y.sum()) + 3)
+    assert c["fp"] == 0 and c["tp"] > 0 and c["unpaired"] == 3
+    assert c["tp"] + c["md"] == y.sum() and c["tp"] + c["fp"] + c["md"] + c["tn"] == 200
+    # Any lower threshold admits the best false pair.
+    assert metrics.detection_counts(y, s >= np.nextafter(lt, -np.inf), 0)["fp"] == 1
+    assert metrics.oracle_log_tau(np.ones(3, bool), [1.0, 2, 3]) == -np.inf
+
+
+def test_labels_and_common_triangles():
+    sc = mm.simulate.make_pair(40, 0.75, 60, rng=4)
+    res = mm.merge_maps(sc.p, sc.q, sc.sigma)
+    vp, vq = res.tri_p.vertices, res.tri_q.vertices
+    common = metrics.common_triangles(sc.ids_p, sc.ids_q, vp, vq)
+    for i, j in common:
+        assert set(sc.ids_p[vp[i]]) == set(sc.ids_q[vq[j]])
+    is_true, consistent = metrics.triangle_labels(sc.ids_p, sc.ids_q, vp, vq, res.triangle_pairs)
+    assert np.all(is_true[consistent])
+    # At 60 dB every common triangle is found with its true partner.
+    assert is_true.sum() == len(common) and consistent.sum() == len(common)

@@ -1,0 +1,166 @@
+"""Theorem 1 against brute force, the χ² law under H1, and glrt's matrix form."""
+
+import numpy as np
+import pytest
+from scipy import optimize, stats
+
+import mapmerge as mm
+from mapmerge.statistic import paired_transforms
+
+
+def _profile(theta, P, Q):
+    """min over µ, t of eq. (5) at fixed θ, by generic linear least squares."""
+    n = P.shape[0]
+    R = mm.rotation(theta)
+    # Unknowns x = [µ (2n), t (2)]; residuals [P - µ ; Q - R µ - t].
+    A = np.zeros((4 * n, 2 * n + 2))
+    A[: 2 * n, : 2 * n] = np.eye(2 * n)
+    A[2 * n :, : 2 * n] = np.kron(np.eye(n), R)
+    A[2 * n :, 2 * n :] = np.tile(np.eye(2), (n, 1))
+    b = np.concatenate([P.ravel(), Q.ravel()])
+    x, *_ = np.linalg.lstsq(A, b, rcond=None)
+    r = b - A @ x
+    return float(r @ r), x[: 2 * n].reshape(n, 2), x[2 * n :]
+
+
+def _d_profile(theta, P, Q):
+    """dJ/dθ by the envelope theorem at the least-squares µ, t."""
+    _, mu, t = _profile(theta, P, Q)
+    c, s = np.cos(theta), np.sin(theta)
+    dR = np.array([[-s, -c], [c, -s]])
+    resid = Q - mu @ mm.rotation(theta).T - t
+    return float(-2 * np.sum(resid * (mu @ dR.T)))
+
+
+def brute_force(P, Q):
+    grid = np.linspace(-np.pi, np.pi, 2881)
+    values = np.array([_profile(th, P, Q)[0] for th in grid])
+    k = int(np.argmin(values))
+    lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, grid.size - 1)]
+    dlo, dhi = _d_profile(lo, P, Q), _d_profile(hi, P, Q)
+    if dlo < 0 < dhi:
+        theta = optimize.brentq(_d_profile, lo, hi, args=(P, Q), xtol=1e-15, rtol=1e-15)
+    else:  # optimum exactly on a grid point (e.g. θ = ±π)
+        theta = grid[k]
+    J, mu, t = _profile(theta, P, Q)
+    return J, float(mm.wrap_angle(theta)), t, mu
+
+
+def _check_against_brute(P, Q):
+    al = mm.align(P, Q, sigma=1.0)
+    J, theta, t, mu = brute_force(P, Q)
+    # The brute force works in raw coordinates, so its rounding floor scales
+    # with their magnitude, not with the (possibly tiny) centred spread.
+    scale = np.sum(P**2) + np.sum(Q**2)
+    assert al.cost == pytest.approx(J, rel=1e-8, abs=1e-12 * scale)
+    assert abs(float(mm.wrap_angle(al.theta - theta))) < 1e-8
+    np.testing.assert_allclose(al.t, t, rtol=1e-8, atol=1e-8 * np.sqrt(scale))
+    np.testing.assert_allclose(al.mu, mu, rtol=1e-8, atol=1e-8 * np.sqrt(scale))
+
+
+@pytest.mark.parametrize("n", [3, 3, 3, 5, 12])
+def test_closed_form_matches_brute_force_random(rng, n):
+    for _ in range(4):
+        P = rng.normal(size=(n, 2)) * rng.uniform(0.5, 20)
+        theta = rng.uniform(-np.pi, np.pi)
+        Q = P @ mm.rotation(theta).T + rng.normal(size=2) * 10 + rng.normal(size=(n, 2)) * rng.uniform(0.01, 2)
+        _check_against_brute(P, Q)
+
+
+@pytest.mark.parametrize("theta", [0.0, np.pi, np.pi / 2, -np.pi / 2])
+def test_beta_zero_and_quarter_turns(rng, theta):
+    P = rng.normal(size=(3, 2))
+    Q = P @ mm.rotation(theta).T + np.array([3.0, -1.0])
+    al = mm.align(P, Q)
+    assert abs(float(mm.wrap_angle(al.theta - theta))) < 1e-12
+    assert al.cost < 1e-20
+    _check_against_brute(P, Q + rng.normal(size=(3, 2)) * 0.05)
+
+
+def test_paper_theta_formula_is_wrong_only_at_beta_zero_pi(rng):
+    """sgn(β)[acos(α/r) - π] gives 0 where the optimum is π; atan2 gives π."""
+    P = rng.normal(size=(3, 2))
+    Q = -P  # θ = π exactly: β = 0, α > 0
+    pc, qc = P - P.mean(0), Q - Q.mean(0)
+    alpha = -np.sum(qc * pc)
+    beta = -np.sum(pc[:, 0] * qc[:, 1] - pc[:, 1] * qc[:, 0])
+    paper = np.sign(beta) * (np.arccos(alpha / np.hypot(alpha, beta)) - np.pi)
+    assert paper == 0.0
+    assert mm.align(P, Q).theta == pytest.approx(np.pi)
+    # Elsewhere both forms agree.
+    Q2 = P @ mm.rotation(1.0).T
+    pc, qc = P - P.mean(0), Q2 - Q2.mean(0)
+    alpha = -np.sum(qc * pc)
+    beta = -np.sum(pc[:, 0] * qc[:, 1] - pc[:, 1] * qc[:, 0])
+    paper = np.sign(beta) * (np.arccos(alpha / np.hypot(alpha, beta)) - np.pi)
+    assert float(mm.wrap_angle(paper)) == pytest.approx(mm.align(P, Q2).theta)
+
+
+def test_near_degenerate_triangles(rng):
+    # Nearly collinear, nearly coincident and badly scaled triangles.
+    cases = [
+        np.array([[0.0, 0.0], [1.0, 1e-6], [2.0, -1e-6]]),
+        np.array([[0.0, 0.0], [1e-4, 0.0], [0.0, 1e-4]]),
+        np.array([[0.0, 0.0], [1000.0, 0.0], [500.0, 0.01]]),
+    ]
+    for P in cases:
+        theta = rng.uniform(-np.pi, np.pi)
+        # Offsets in proportion to the triangle: the brute force in raw
+        # coordinates cannot resolve θ of a 1e-4 triangle sitting at 100.
+        Q = P @ mm.rotation(theta).T + np.ptp(P) * (5.0 + rng.normal(size=(3, 2)) * 1e-3)
+        _check_against_brute(P, Q)
+
+
+def test_mu_in_p_frame_is_midpoint():
+    P = np.array([[0.0, 0.0], [2.0, 0.0], [0.0, 1.0]])
+    Q = P @ mm.rotation(0.3).T + [1.0, 2.0]
+    al = mm.align(P, Q)
+    np.testing.assert_allclose(al.mu, P, atol=1e-12)
+    assert al.dof == 3
+
+
+def test_glrt_matrix_equals_pairwise_fits(rng):
+    cp = rng.normal(size=(7, 3, 2)) * 3
+    cq = rng.normal(size=(5, 3, 2)) * 3
+    cq[2] = cp[4] @ mm.rotation(2.0).T + 1.0
+    sigma = 0.7
+    L = mm.glrt(cp, cq, sigma)
+    assert L.shape == (7, 5)
+    ii, jj = np.meshgrid(np.arange(7), np.arange(5), indexing="ij")
+    _, _, cost = paired_transforms(cp[ii.ravel()], cq[jj.ravel()])
+    np.testing.assert_allclose(L.ravel(), -cost / (2 * sigma**2), rtol=1e-9, atol=1e-9)
+    assert np.all(L <= 0)
+    assert L[4, 2] == pytest.approx(0.0, abs=1e-9)
+
+
+@pytest.mark.parametrize("n", [3, 6])
+def test_minus_two_log_lr_is_chi2_under_h1(n):
+    """-2 log Λ ~ χ²(2n - 3) under H1: Monte Carlo + KS test, fixed seed."""
+    rng = np.random.default_rng(7)
+    m, sigma = 4000, 0.05
+    mu = rng.uniform(0, 10, size=(m, n, 2))
+    theta = rng.uniform(-np.pi, np.pi, size=m)
+    c, s = np.cos(theta), np.sin(theta)
+    R = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+    P = mu + rng.normal(scale=sigma, size=mu.shape)
+    Q = np.einsum("mij,mvj->mvi", R, mu) + rng.normal(size=(m, 1, 2)) * 5 + rng.normal(scale=sigma, size=mu.shape)
+    _, _, cost = paired_transforms(P, Q)
+    stat = cost / sigma**2
+    ks = stats.kstest(stat, stats.chi2(2 * n - 3).cdf)
+    print(f"n={n}: KS D={ks.statistic:.4f} p={ks.pvalue:.3f}, mean={stat.mean():.3f} (expect {2*n-3})")
+    assert ks.pvalue > 0.01
+    # A wrong dof must be rejected: the test has power.
+    assert stats.kstest(stat, stats.chi2(2 * n - 2).cdf).pvalue < 1e-6
+
+
+def test_glrt_and_align_validate():
+    with pytest.raises(ValueError, match="coords_p"):
+        mm.glrt(np.zeros((4, 2, 2)), np.zeros((4, 3, 2)), 1.0)
+    with pytest.raises(ValueError, match="coords_q"):
+        mm.glrt(np.zeros((4, 3, 2)), np.full((4, 3, 2), np.nan), 1.0)
+    with pytest.raises(ValueError, match="sigma"):
+        mm.glrt(np.zeros((4, 3, 2)), np.zeros((4, 3, 2)), 0.0)
+    with pytest.raises(ValueError, match="same shape"):
+        mm.align(np.zeros((3, 2)), np.zeros((4, 2)))
+    with pytest.raises(ValueError, match="P needs at least 2"):
+        mm.align(np.zeros((1, 2)), np.zeros((1, 2)))
