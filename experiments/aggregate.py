@@ -1,0 +1,132 @@
+"""Pool trials per cell into ROC curves and precision / missed-detection tables.
+
+    python -m experiments.aggregate RUN_OR_SWEEP_DIR [...] --out DIR
+
+Reads every ``trials.parquet`` / ``pairs.parquet`` below the given
+directories (runs of the same cell, e.g. other seeds, are pooled) and writes:
+
+- ``roc.csv``: P_FA, P_D and log τ per cell (sampled on a fixed P_FA grid,
+  plus every point of the curve's first rise);
+- ``auc.csv``: AUC, P_D at zero false alarms and pair counts per cell;
+- ``table.csv`` / ``table.md``: per cell and τ rule, TP, FP, MD, TN,
+  precision, MD rate, achieved P_D / P_FA, recall against common triangles,
+  merge success rate and combined-map RMSE.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from mapmerge import metrics
+
+CELL = ["n_landmarks", "overlap", "snr_db", "aspect", "method", "objective"]
+#: P_FA values at which stored ROC curves are sampled (the full curve gives AUC).
+PFA_GRID = np.unique(np.r_[0.0, np.logspace(-5, 0, 151), np.linspace(0, 1, 201)])
+
+
+def find_runs(dirs) -> list[Path]:
+    runs = sorted({p.parent for d in dirs for p in Path(d).rglob("trials.parquet")})
+    if not runs:
+        raise FileNotFoundError(f"no trials.parquet below {', '.join(map(str, dirs))}")
+    return runs
+
+
+def load(dirs) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """All trials, and all tentative pairs tagged with their cell."""
+    trials, pairs = [], []
+    for run in find_runs(dirs):
+        t = pd.read_parquet(run / "trials.parquet")
+        p = pd.read_parquet(run / "pairs.parquet")
+        cell = t[CELL + ["seed"]].iloc[0]
+        trials.append(t)
+        pairs.append(p.assign(**cell.to_dict()))
+    return pd.concat(trials, ignore_index=True), pd.concat(pairs, ignore_index=True)
+
+
+def _sample(fpr, tpr, thr):
+    idx = np.searchsorted(fpr, PFA_GRID, side="right") - 1
+    rise = np.flatnonzero(fpr == 0)  # keep the whole P_FA = 0 segment's top
+    keep = np.unique(np.r_[idx[idx >= 0], rise[-1:], fpr.size - 1])
+    return fpr[keep], tpr[keep], thr[keep]
+
+
+def roc_tables(pairs: pd.DataFrame) -> tuple[pd.DataFrame, pd.DataFrame]:
+    rocs, aucs = [], []
+    for cell, g in pairs.groupby(CELL, sort=True):
+        fpr, tpr, thr = metrics.roc_curve(g["label"].to_numpy(), g["score"].to_numpy())
+        head = dict(zip(CELL, cell))
+        f, t, th = _sample(fpr, tpr, thr)
+        rocs.append(pd.DataFrame({**head, "p_fa": f, "p_d": t, "log_tau": th}))
+        aucs.append({
+            **head,
+            "auc": metrics.auc(fpr, tpr),
+            "p_d_at_zero_fa": float(tpr[fpr == 0].max()),
+            "n_trials": int(g.groupby("seed")["trial"].nunique().sum()),
+            "n_pairs": len(g),
+            "n_true": int(g["label"].sum()),
+            "n_order_flips": int((g["label"] & ~g["order_consistent"]).sum()),
+        })
+    return pd.concat(rocs, ignore_index=True), pd.DataFrame(aucs)
+
+
+def _ratio(num, den):
+    return np.where(den > 0, num / np.maximum(den, 1), np.nan)
+
+
+def summary_table(trials: pd.DataFrame) -> pd.DataFrame:
+    keys = CELL + ["tau"]
+    g = trials.groupby(keys, sort=True)
+    t = g[["tp", "fp", "md", "tn", "common", "unpaired", "wrong_pairs", "duplicates"]].sum()
+    t.insert(0, "n_trials", g.size())
+    t["precision"] = _ratio(t.tp, t.tp + t.fp)
+    t["md_rate"] = _ratio(t.md, t.tp + t.md)
+    t["p_d"] = _ratio(t.tp, t.tp + t.md)
+    t["p_fa"] = _ratio(t.fp, t.fp + t.tn)
+    t["recall_common"] = _ratio(t.tp, t.common)
+    t["trials_with_fp"] = g["fp"].apply(lambda s: int((s > 0).sum()))
+    t["matched_rate"] = g["matched"].mean()
+    t["success_rate"] = g["success"].mean()
+    t["median_rot_err_deg"] = g["rot_err_deg"].median()
+    t["median_rmse_over_sigma"] = (trials["rmse"] / trials["sigma"]).groupby(
+        [trials[k] for k in keys]).median()
+    t["mean_log_tau"] = g["log_tau"].mean()
+    return t.reset_index()
+
+
+def aggregate(dirs, out) -> dict[str, Path]:
+    """Write roc.csv, auc.csv, table.csv and table.md into ``out``."""
+    trials, pairs = load(dirs)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    roc, auc = roc_tables(pairs)
+    table = summary_table(trials)
+    paths = {name: out / f"{name}.csv" for name in ("roc", "auc", "table")}
+    roc.to_csv(paths["roc"], index=False, float_format="%.6g")
+    auc.to_csv(paths["auc"], index=False, float_format="%.6g")
+    table.to_csv(paths["table"], index=False, float_format="%.6g")
+    paths["table_md"] = out / "table.md"
+    paths["table_md"].write_text(markdown_table(table) + "\n")
+    return paths
+
+
+def markdown_table(table: pd.DataFrame) -> str:
+    cols = ["n_landmarks", "overlap", "snr_db", "objective", "tau", "n_trials", "tp", "fp", "md",
+            "precision", "md_rate", "recall_common", "success_rate", "median_rmse_over_sigma"]
+    return table[cols].to_markdown(index=False, floatfmt=".3g")
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("dirs", nargs="+", help="run or sweep directories")
+    parser.add_argument("--out", required=True, help="directory for the tables")
+    args = parser.parse_args(argv)
+    for name, path in aggregate(args.dirs, args.out).items():
+        print(f"{name}: {path}")
+
+
+if __name__ == "__main__":
+    main()

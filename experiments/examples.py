@@ -1,0 +1,72 @@
+"""Geometry of example trials, as tables, for the paper's Fig. 1 and Fig. 2.
+
+A trial is recomputed from its seed (DESIGN §6), so examples need no state
+from the Monte Carlo run. The first τ rule of the matcher is used.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from mapmerge import metrics
+from mapmerge.merging import match_triangles, merge_at
+
+from .trials import make_trial_pair, resolve_tau
+
+
+def _triangle_status(n_tri, side, triangle_pairs, is_true, declared, common):
+    """Status of every triangle of one map: tp, fp, md, tn, unpaired or other."""
+    status = np.full(n_tri, "other", dtype=object)
+    status[common[:, side]] = "unpaired"  # overwritten below when LP paired it right
+    label = np.where(is_true, np.where(declared, "tp", "md"), np.where(declared, "fp", "tn"))
+    # A common triangle the LP paired with a wrong partner stays "unpaired"
+    # unless that wrong pairing was declared (then it is a false positive).
+    idx = triangle_pairs[:, side]
+    keep = is_true | declared | (status[idx] != "unpaired")
+    status[idx[keep]] = label[keep]
+    return status
+
+
+def example_tables(seed: int, scenario: dict, matcher: dict, trials) -> dict[str, pd.DataFrame]:
+    """Triangles with their detection status, landmarks and the combined map.
+
+    Returns
+    -------
+    dict
+        ``example_triangles``: one row per triangle of either map (its own
+        frame), with status; ``example_landmarks``: rows of kind ``p``, ``q``
+        (own frames), ``merged`` (p's frame, with origin) and ``truth``.
+    """
+    tri_rows, lm_rows = [], []
+    for k in trials:
+        sc = make_trial_pair(seed, scenario, k)
+        match = match_triangles(sc.p, sc.q, sc.sigma, matcher["objective"])
+        vp, vq = match.tri_p.vertices, match.tri_q.vertices
+        is_true, _ = metrics.triangle_labels(sc.ids_p, sc.ids_q, vp, vq, match.triangle_pairs)
+        common = metrics.common_triangles(sc.ids_p, sc.ids_q, vp, vq)
+        rule = matcher["taus"][0]
+        res = merge_at(sc.p, sc.q, sc.sigma, match, resolve_tau(rule, is_true, match.triangle_log_lr))
+        for side, (name, tri) in enumerate((("p", match.tri_p), ("q", match.tri_q))):
+            status = _triangle_status(len(tri), side, match.triangle_pairs, is_true, res.declared, common)
+            xy = tri.coords.reshape(len(tri), 6)
+            tri_rows.append(pd.DataFrame({
+                "trial": k, "map": name, "tau": rule, "status": status,
+                **{f"{c}{v}": xy[:, 2 * (v - 1) + (c == "y")] for v in (1, 2, 3) for c in "xy"},
+            }))
+        c = res.combined
+        merged_ids = np.where(c.index_p >= 0, sc.ids_p[c.index_p], sc.ids_q[c.index_q])
+        for kind, pts, ids, origin in (
+            ("p", sc.p, sc.ids_p, "p"),
+            ("q", sc.q, sc.ids_q, "q"),
+            ("merged", c.points, merged_ids, c.origin),
+            ("truth", sc.truth, np.arange(len(sc.truth)), "truth"),
+        ):
+            lm_rows.append(pd.DataFrame({
+                "trial": k, "kind": kind, "x": pts[:, 0], "y": pts[:, 1], "id": ids,
+                "origin": origin, "sigma": sc.sigma, "snr_db": sc.snr_db, "tau": rule,
+            }))
+    return {
+        "example_triangles": pd.concat(tri_rows, ignore_index=True),
+        "example_landmarks": pd.concat(lm_rows, ignore_index=True),
+    }

@@ -1,0 +1,213 @@
+"""Run the Monte Carlo trials of one grid cell (Hydra app).
+
+    python -m experiments.run [overrides]              # one cell
+    python -m experiments.run -m experiment=fig3       # a sweep preset
+    python -m experiments.run -m scenario.snr_db=20,30,40
+
+Each run writes into its Hydra output directory:
+
+- ``chunks/``: one atomic Parquet file per finished chunk (the resume points);
+- ``trials.parquet``: one row per trial and τ rule (counts, map-level errors);
+- ``pairs.parquet``: one row per tentative triangle pair (score, label);
+- ``timings.parquet``: per-trial timings (kept apart: they vary run to run,
+  while the two files above are bit-identical for any ``n_jobs``,
+  ``chunk_size`` and after a resume);
+- ``config.yaml`` (resolved) and, with ``mc.examples > 0``, the geometry of
+  the first trials for Fig. 1 and Fig. 2.
+
+Rerunning the same command skips finished chunks. Every config value is
+checked, for every job of a sweep, before Hydra creates any directory.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import sys
+from contextlib import contextmanager
+from pathlib import Path
+
+import hydra
+import joblib
+import pandas as pd
+from omegaconf import DictConfig, OmegaConf
+from tqdm.auto import tqdm
+
+from .schema import ConfigError, register_configs, validate
+from .trials import SCENARIO_KEYS, TIME_COLUMNS, cell_key, run_chunk
+from .examples import example_tables
+
+log = logging.getLogger(__name__)
+CONF_DIR = str(Path(__file__).resolve().parent.parent / "conf")
+register_configs()
+
+
+def write_parquet_atomic(df: pd.DataFrame, path: Path) -> None:
+    """Write a Parquet file so that it either exists complete or not at all."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    df.to_parquet(tmp, index=False)
+    os.replace(tmp, path)
+
+
+def _run_key(cfg: DictConfig) -> str:
+    """Hash of everything that determines the trials' content."""
+    key = {
+        "scenario": OmegaConf.to_container(cfg.scenario),
+        "matcher": OmegaConf.to_container(cfg.matcher),
+        "seed": cfg.mc.seed,
+    }
+    return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:12]
+
+
+@contextmanager
+def _backend(mc):
+    """joblib backend: local loky processes, or a dask.distributed cluster."""
+    if mc.backend == "loky":
+        with joblib.parallel_config(backend="loky", n_jobs=mc.n_jobs):
+            yield
+        return
+    from dask.distributed import Client, LocalCluster
+
+    if mc.address:
+        client = Client(mc.address)
+        cluster = None
+    else:
+        cluster = LocalCluster(n_workers=mc.n_jobs, threads_per_worker=1, processes=True)
+        client = Client(cluster)
+    try:
+        with joblib.parallel_config(backend="dask", n_jobs=mc.n_jobs):
+            yield
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def run(cfg: DictConfig, output_dir: str | Path) -> Path:
+    """Run (or resume) the trials of one cell and write its result files.
+
+    Parameters
+    ----------
+    cfg : DictConfig
+        A composed config (see ``conf/``).
+    output_dir : path
+        Where the files go (the Hydra output directory).
+
+    Returns
+    -------
+    Path
+        The ``trials.parquet`` written.
+    """
+    validate(cfg)
+    out = Path(output_dir)
+    chunk_dir = out / "chunks"
+    chunk_dir.mkdir(parents=True, exist_ok=True)
+    OmegaConf.save(cfg, out / "config.yaml", resolve=True)
+
+    scenario = {k: cfg.scenario[k] for k in SCENARIO_KEYS}
+    matcher = OmegaConf.to_container(cfg.matcher)
+    n, size, seed = cfg.mc.n_trials, cfg.mc.chunk_size, cfg.mc.seed
+    run_key = _run_key(cfg)
+    bounds = [(a, min(a + size, n)) for a in range(0, n, size)]
+
+    def stem(a, b):
+        return chunk_dir / f"{run_key}_{a:07d}_{b:07d}"
+
+    todo = [(a, b) for a, b in bounds if not Path(f"{stem(a, b)}.trials.parquet").exists()]
+    log.info(
+        "cell %s: %d trials in %d chunks, %d to run, n_jobs=%d backend=%s",
+        scenario, n, len(bounds), len(todo), cfg.mc.n_jobs, cfg.mc.backend,
+    )
+    if todo:
+        with _backend(cfg.mc):
+            jobs = (joblib.delayed(_chunk_job)(seed, scenario, matcher, a, b) for a, b in todo)
+            results = joblib.Parallel(return_as="generator_unordered")(jobs)
+            with tqdm(
+                total=sum(b - a for a, b in todo), unit="trial", desc=f"{cfg.name}",
+                disable=not cfg.mc.progress, file=sys.stderr,
+            ) as bar:
+                for a, b, trials, pairs in results:
+                    base = stem(a, b)
+                    timings = trials[["trial", "tau", *TIME_COLUMNS]]
+                    write_parquet_atomic(pairs, Path(f"{base}.pairs.parquet"))
+                    write_parquet_atomic(timings, Path(f"{base}.timings.parquet"))
+                    # The trials file last: its presence marks the chunk done.
+                    write_parquet_atomic(trials.drop(columns=list(TIME_COLUMNS)), Path(f"{base}.trials.parquet"))
+                    bar.update(b - a)
+
+    cell = {**scenario, "method": cfg.matcher.method, "objective": cfg.matcher.objective,
+            "seed": seed, "cell_key": cell_key(scenario)}
+    parts = {kind: [pd.read_parquet(f"{stem(a, b)}.{kind}.parquet") for a, b in bounds]
+             for kind in ("trials", "pairs", "timings")}
+    trials = pd.concat(parts["trials"], ignore_index=True)
+    trials = pd.concat([pd.DataFrame({k: [v] * len(trials) for k, v in cell.items()}), trials], axis=1)
+    write_parquet_atomic(trials, out / "trials.parquet")
+    write_parquet_atomic(pd.concat(parts["pairs"], ignore_index=True), out / "pairs.parquet")
+    write_parquet_atomic(pd.concat(parts["timings"], ignore_index=True), out / "timings.parquet")
+    if cfg.mc.examples:
+        for name, table in example_tables(seed, scenario, matcher, range(cfg.mc.examples)).items():
+            write_parquet_atomic(table, out / f"{name}.parquet")
+    log.info("wrote %s (%d rows)", out / "trials.parquet", len(trials))
+    return out / "trials.parquet"
+
+
+def _chunk_job(seed, scenario, matcher, a, b):
+    trials, pairs = run_chunk(seed, scenario, matcher, a, b)
+    return a, b, trials, pairs
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="config")
+def main(cfg: DictConfig) -> None:
+    from hydra.core.hydra_config import HydraConfig
+
+    run(cfg, HydraConfig.get().runtime.output_dir)
+
+
+def preflight(argv: list[str]) -> None:
+    """Compose and validate every job a command would launch, writing nothing.
+
+    Raises
+    ------
+    ConfigError
+        With one line naming the key, the value and what is allowed.
+    """
+    from hydra import compose, initialize_config_dir
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    overrides = [a for a in argv if not a.startswith("-")]
+    multirun = any(a in ("-m", "--multirun") for a in argv)
+    try:
+        with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+            base = compose("config", overrides=overrides, return_hydra_config=multirun)
+            jobs = [overrides]
+            if multirun:
+                params = [f"{k}={v}" for k, v in (base.hydra.sweeper.get("params") or {}).items()]
+                parsed = OverridesParser.create().parse_overrides(params + overrides)
+                jobs = [list(job) for batch in BasicSweeper.split_arguments(parsed, None) for job in batch]
+            for job in jobs:
+                validate(compose("config", overrides=job))
+    except ConfigError:
+        raise
+    except Exception as exc:  # Hydra/OmegaConf composition errors are multi-line
+        text = " ".join(line.strip() for line in str(exc).splitlines() if line.strip())
+        raise ConfigError(text) from None
+
+
+def cli() -> None:
+    passthrough = {"--help", "-h", "--hydra-help", "--info", "-i", "--cfg", "-c", "--resolve",
+                   "--shell-completion", "-sc", "--config-path", "-cp", "--config-name", "-cn",
+                   "--config-dir", "-cd", "--experimental-rerun"}
+    if not passthrough.intersection(sys.argv[1:]):
+        try:
+            preflight(sys.argv[1:])
+        except ConfigError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            raise SystemExit(2) from None
+    main()
+
+
+if __name__ == "__main__":
+    cli()
