@@ -10,7 +10,9 @@ directories (runs of the same cell, e.g. other seeds, are pooled) and writes:
 - ``auc.csv``: AUC, P_D at zero false alarms and pair counts per cell;
 - ``table.csv`` / ``table.md``: per cell and τ rule, TP, FP, MD, TN,
   precision, MD rate, achieved P_D / P_FA, recall against common triangles,
-  merge success rate and combined-map RMSE.
+  merge success rate and combined-map RMSE;
+- ``examples_triangles.csv`` / ``examples_landmarks.csv`` when runs saved
+  example geometry (``mc.examples``), for Fig. 1 and Fig. 2.
 """
 
 from __future__ import annotations
@@ -33,6 +35,16 @@ def find_runs(dirs) -> list[Path]:
     if not runs:
         raise FileNotFoundError(f"no trials.parquet below {', '.join(map(str, dirs))}")
     return runs
+
+
+def load_examples(dirs) -> dict[str, pd.DataFrame]:
+    """Example-trial geometry tables of every run, tagged with their cell."""
+    found: dict[str, list[pd.DataFrame]] = {}
+    for run in find_runs(dirs):
+        cell = pd.read_parquet(run / "trials.parquet", columns=CELL).iloc[0].to_dict()
+        for path in sorted(run.glob("example_*.parquet")):
+            found.setdefault(path.stem, []).append(pd.read_parquet(path).assign(**cell))
+    return {name: pd.concat(parts, ignore_index=True) for name, parts in found.items()}
 
 
 def load(dirs) -> tuple[pd.DataFrame, pd.DataFrame]:
@@ -110,6 +122,10 @@ def aggregate(dirs, out) -> dict[str, Path]:
     table.to_csv(paths["table"], index=False, float_format="%.6g")
     paths["table_md"] = out / "table.md"
     paths["table_md"].write_text(markdown_table(table) + "\n")
+    for name, examples in load_examples(dirs).items():
+        plural = name.replace("example_", "examples_")
+        paths[plural] = out / f"{plural}.csv"
+        examples.to_csv(paths[plural], index=False, float_format="%.10g")
     return paths
 
 

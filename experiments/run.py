@@ -180,13 +180,18 @@ def preflight(argv: list[str]) -> None:
     overrides = [a for a in argv if not a.startswith("-")]
     multirun = any(a in ("-m", "--multirun") for a in argv)
     try:
+        parser = OverridesParser.create()
+        parsed = parser.parse_overrides(overrides)
+        jobs = [overrides]
         with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-            base = compose("config", overrides=overrides, return_hydra_config=multirun)
-            jobs = [overrides]
             if multirun:
+                # Sweep values from the presets (hydra.sweeper.params) and the
+                # command line expand exactly as Hydra's basic sweeper does.
+                plain = [o.input_line for o in parsed if not o.is_sweep_override()]
+                base = compose("config", overrides=plain, return_hydra_config=True)
                 params = [f"{k}={v}" for k, v in (base.hydra.sweeper.get("params") or {}).items()]
-                parsed = OverridesParser.create().parse_overrides(params + overrides)
-                jobs = [list(job) for batch in BasicSweeper.split_arguments(parsed, None) for job in batch]
+                sweep = parser.parse_overrides(params + overrides)
+                jobs = [list(job) for batch in BasicSweeper.split_arguments(sweep, None) for job in batch]
             for job in jobs:
                 validate(compose("config", overrides=job))
     except ConfigError:

@@ -1,0 +1,158 @@
+"""The paper's figures, drawn from aggregated tables only.
+
+    python -m experiments.figures RESULTS_DIR
+
+looks for ``fig3/roc.csv`` + ``fig3/auc.csv`` (Fig. 3, ROC curves),
+``fig1/examples_triangles.csv`` (Fig. 1, detections on both maps) and
+``fig2/examples_landmarks.csv`` (Fig. 2, combined map vs ground truth) below
+RESULTS_DIR and writes ``fig1``/``fig2``/``fig3`` as PNG and PDF there.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+from matplotlib.collections import PolyCollection  # noqa: E402
+
+STYLE = {
+    "font.size": 8,
+    "axes.titlesize": 8,
+    "axes.labelsize": 8,
+    "legend.fontsize": 6.5,
+    "xtick.labelsize": 7,
+    "ytick.labelsize": 7,
+    "lines.linewidth": 1.0,
+    "savefig.dpi": 200,
+}
+#: Detection colours of the paper's Fig. 1 (green TP, blue MD, red FP).
+STATUS_COLOURS = {"tp": "tab:green", "md": "tab:blue", "fp": "tab:red"}
+#: Fig. 3 panel order of the paper: (landmarks, overlap).
+FIG3_PANELS = [(10, 0.75), (10, 0.5), (20, 0.75), (20, 0.5)]
+
+
+def _save(fig, out: Path, name: str) -> list[Path]:
+    paths = [out / f"{name}.png", out / f"{name}.pdf"]
+    fig.savefig(paths[0], metadata={"Software": None})
+    fig.savefig(paths[1], metadata={"CreationDate": None, "Creator": None, "Producer": None})
+    plt.close(fig)
+    return paths
+
+
+def fig3(roc: pd.DataFrame, auc: pd.DataFrame, out: Path, name: str = "fig3") -> list[Path]:
+    """Monte Carlo ROC curves, one panel per (landmarks, overlap), one curve per SNR."""
+    snrs = sorted(roc["snr_db"].unique())
+    cmap = plt.get_cmap("viridis")
+    colours = {s: cmap(i / max(len(snrs) - 1, 1)) for i, s in enumerate(snrs)}
+    fig, axes = plt.subplots(2, 2, figsize=(6.5, 6.2), sharex=True, sharey=True)
+    for ax, (n, ov), letter in zip(axes.ravel(), FIG3_PANELS, "abcd"):
+        panel = roc[(roc.n_landmarks == n) & np.isclose(roc.overlap, ov)]
+        for snr in snrs:
+            curve = panel[panel.snr_db == snr]
+            if curve.empty:
+                continue
+            a = auc[(auc.n_landmarks == n) & np.isclose(auc.overlap, ov) & (auc.snr_db == snr)]
+            trials = int(a.n_trials.iloc[0])
+            ax.step(curve.p_fa, curve.p_d, where="post", color=colours[snr],
+                    label=f"{snr:g} dB (AUC {a.auc.iloc[0]:.3f})")
+        ax.plot([0, 1], [0, 1], color="0.8", lw=0.6, ls=":")
+        ax.set_title(f"({letter}) {n} landmarks, {ov:.0%} overlap"
+                     + (f", {trials:,} trials" if not panel.empty else ""))
+        ax.set_xlim(0, 1)
+        ax.set_ylim(0, 1.01)
+        ax.grid(alpha=0.3, lw=0.4)
+        ax.legend(loc="lower right", frameon=False, handlelength=1.2)
+    for ax in axes[1]:
+        ax.set_xlabel("probability of false alarm $P_{FA}$")
+    for ax in axes[:, 0]:
+        ax.set_ylabel("probability of detection $P_D$")
+    fig.tight_layout()
+    return _save(fig, out, name)
+
+
+def _triangles(ax, tri: pd.DataFrame):
+    xy = tri[["x1", "y1", "x2", "y2", "x3", "y3"]].to_numpy().reshape(-1, 3, 2)
+    status = tri["status"].to_numpy()
+    plain = ~np.isin(status, list(STATUS_COLOURS))
+    ax.add_collection(PolyCollection(xy[plain], facecolors="none", edgecolors="0.75", linewidths=0.4))
+    for key, colour in STATUS_COLOURS.items():
+        sel = status == key
+        ax.add_collection(PolyCollection(xy[sel], facecolors=colour, edgecolors=colour,
+                                         alpha=0.45, linewidths=0.6))
+    ax.autoscale_view()
+    ax.set_aspect("equal")
+    ax.set_xticks([])
+    ax.set_yticks([])
+    counts = {k: int((status == k).sum()) for k in STATUS_COLOURS}
+    return counts
+
+
+def fig1(triangles: pd.DataFrame, out: Path, name: str = "fig1") -> list[Path]:
+    """Both maps' triangles: true detections green, missed blue, false red."""
+    snrs = sorted(triangles["snr_db"].unique(), reverse=True)
+    fig, axes = plt.subplots(len(snrs), 2, figsize=(6.5, 3.2 * len(snrs)), squeeze=False)
+    for row, snr in zip(axes, snrs):
+        cell = triangles[(triangles.snr_db == snr) & (triangles.trial == triangles.trial.min())]
+        for ax, side in zip(row, ("p", "q")):
+            counts = _triangles(ax, cell[cell["map"] == side])
+            ax.set_title(f"{snr:g} dB, map {side}: {counts['tp']} TP (green), "
+                         f"{counts['md']} MD (blue), {counts['fp']} FP (red)")
+    fig.suptitle(f"Matching, {cell.n_landmarks.iloc[0]} landmarks per map, "
+                 f"{cell.overlap.iloc[0]:.0%} common, τ rule: {cell.tau.iloc[0]}", fontsize=8)
+    fig.tight_layout()
+    return _save(fig, out, name)
+
+
+def fig2(landmarks: pd.DataFrame, out: Path, name: str = "fig2") -> list[Path]:
+    """Combined map (red squares) against ground truth (crosses)."""
+    snrs = sorted(landmarks["snr_db"].unique(), reverse=True)
+    fig, axes = plt.subplots(1, len(snrs), figsize=(3.3 * len(snrs), 3.4), squeeze=False)
+    for ax, snr in zip(axes[0], snrs):
+        cell = landmarks[(landmarks.snr_db == snr) & (landmarks.trial == landmarks.trial.min())]
+        truth, merged = cell[cell.kind == "truth"], cell[cell.kind == "merged"]
+        ax.scatter(truth.x, truth.y, marker="+", s=30, c="k", lw=0.7, label="ground truth")
+        ax.scatter(merged.x, merged.y, marker="s", s=14, facecolors="none", edgecolors="tab:red",
+                   lw=0.7, label="combined map")
+        dup = int(merged.id.duplicated().sum())
+        fused = int((merged.origin == "fused").sum())
+        ax.set_title(f"({'ab'[list(snrs).index(snr)]}) {snr:g} dB: {len(merged)} entries, "
+                     f"{fused} fused, {dup} duplicates")
+        ax.set_aspect("equal")
+        ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.07), ncol=2, frameon=False)
+    fig.tight_layout()
+    return _save(fig, out, name)
+
+
+def draw_all(results: Path) -> list[Path]:
+    """Draw every figure whose tables exist below ``results``."""
+    results = Path(results)
+    made = []
+    with plt.rc_context(STYLE):
+        if (results / "fig3" / "roc.csv").exists():
+            made += fig3(pd.read_csv(results / "fig3" / "roc.csv"),
+                         pd.read_csv(results / "fig3" / "auc.csv"), results)
+        if (results / "fig1" / "examples_triangles.csv").exists():
+            made += fig1(pd.read_csv(results / "fig1" / "examples_triangles.csv"), results)
+        if (results / "fig2" / "examples_landmarks.csv").exists():
+            made += fig2(pd.read_csv(results / "fig2" / "examples_landmarks.csv"), results)
+    if not made:
+        raise FileNotFoundError(f"no figure tables below {results}")
+    return made
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description="Draw the paper's figures from aggregated tables.")
+    parser.add_argument("results", help="directory holding fig1/, fig2/, fig3/ tables")
+    args = parser.parse_args(argv)
+    for path in draw_all(Path(args.results)):
+        print(path)
+
+
+if __name__ == "__main__":
+    main()
