@@ -193,7 +193,14 @@ def preflight(argv: list[str]) -> None:
                 sweep = parser.parse_overrides(params + overrides)
                 jobs = [list(job) for batch in BasicSweeper.split_arguments(sweep, None) for job in batch]
             for job in jobs:
-                validate(compose("config", overrides=job))
+                cfg = compose("config", overrides=job, return_hydra_config=True)
+                validate(cfg)
+                launcher = str(cfg.hydra.launcher.get("_target_", ""))
+                if "joblib" in launcher.lower() and cfg.mc.n_jobs != 1:
+                    raise ConfigError(
+                        f"mc.n_jobs={cfg.mc.n_jobs} is invalid: must be 1 under hydra/launcher=joblib "
+                        "(the launcher already runs jobs in parallel; joblib must not nest)"
+                    )
     except ConfigError:
         raise
     except Exception as exc:  # Hydra/OmegaConf composition errors are multi-line

@@ -90,6 +90,7 @@ def _cli(args, cwd, timeout=120):
         (["-m", "experiment=smoke", "mc.n_jobs=0"], "mc.n_jobs"),
         (["scenario.foo=1"], "foo"),
         (["mc.n_trials=abc"], "n_trials"),
+        (["-m", "experiment=smoke", "hydra/launcher=joblib"], "mc.n_jobs"),
     ],
 )
 def test_invalid_overrides_fail_fast_and_write_nothing(tmp_path, args, key):
@@ -145,6 +146,15 @@ def test_kill_9_then_rerun_matches_uninterrupted(tmp_path):
     ref_dir = next((tmp_path / "outputs" / "runs" / "ref").iterdir())
     for name in ("trials.parquet", "pairs.parquet"):
         assert _digest(chunk_dir.parent / name) == _digest(ref_dir / name)
+
+
+def test_hydra_joblib_launcher_runs_jobs_in_parallel(tmp_path):
+    proc = _cli(["-m", "experiment=smoke", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2",
+                 "mc.n_jobs=1", "mc.progress=false"], tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    sweep = tmp_path / "outputs" / "sweeps" / "smoke"
+    assert len(list(sweep.glob("*/trials.parquet"))) == 2
+    assert (sweep / "aggregate" / "table.csv").exists()
 
 
 def test_dask_backend_gives_identical_results(tmp_path):
