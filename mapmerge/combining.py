@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .statistic import Alignment, _align, rotation
+from .statistic import Alignment, _align, mapped_covariance, rotation
 
 
 @dataclass(frozen=True)
@@ -29,12 +29,16 @@ class CombinedMap:
         ``"fused"``, ``"p"`` or ``"q"``.
     index_p, index_q : (N,) int ndarray
         Source landmark index in map p / map q, -1 where there is none.
+    cov : (N, 2, 2) ndarray
+        Covariance of each row: µ* from the n-point fit, σ² I for p-only
+        rows, σ² I plus the transform's uncertainty for mapped q-only rows.
     """
 
     points: np.ndarray
     origin: np.ndarray
     index_p: np.ndarray
     index_q: np.ndarray
+    cov: np.ndarray
 
 
 def combine_maps(P: np.ndarray, Q: np.ndarray, pairs: np.ndarray, sigma: float):
@@ -64,11 +68,16 @@ def combine_maps(P: np.ndarray, Q: np.ndarray, pairs: np.ndarray, sigma: float):
         origin=np.array(["fused"] * k + ["p"] * n_p + ["q"] * n_q, dtype=object),
         index_p=np.concatenate([pairs[:, 0], only_p, np.full(n_q, -1)]).astype(np.intp),
         index_q=np.concatenate([pairs[:, 1], np.full(n_p, -1), only_q]).astype(np.intp),
+        cov=np.concatenate([
+            alignment.mu_cov,
+            np.broadcast_to(sigma**2 * np.eye(2), (n_p, 2, 2)),
+            mapped_covariance(q_in_p, alignment.theta, alignment.cov, sigma),
+        ]),
     )
     return alignment, combined
 
 
-def p_only_map(P: np.ndarray) -> CombinedMap:
+def p_only_map(P: np.ndarray, sigma: float) -> CombinedMap:
     """The combined map when nothing matched: map p alone, in its own frame."""
     n = P.shape[0]
     return CombinedMap(
@@ -76,4 +85,5 @@ def p_only_map(P: np.ndarray) -> CombinedMap:
         origin=np.array(["p"] * n, dtype=object),
         index_p=np.arange(n, dtype=np.intp),
         index_q=np.full(n, -1, dtype=np.intp),
+        cov=np.broadcast_to(sigma**2 * np.eye(2), (n, 2, 2)).copy(),
     )

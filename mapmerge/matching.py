@@ -94,8 +94,8 @@ def assign(log_lr: np.ndarray, objective: str = "lr") -> np.ndarray:
     return np.stack([rows, cols], axis=1).astype(np.intp)
 
 
-def correspondences(vertices_p, vertices_q, triangle_pairs, declared, log_lr):
-    """Landmark correspondences implied by declared triangle pairs.
+def correspondences(vertices_p, vertices_q, log_lr):
+    """One-to-one landmark correspondences implied by declared triangle pairs.
 
     Each declared pair gives three correspondences, vertex i to vertex i.
     When a landmark ends up paired with two different partners, the
@@ -105,35 +105,29 @@ def correspondences(vertices_p, vertices_q, triangle_pairs, declared, log_lr):
 
     Parameters
     ----------
-    vertices_p, vertices_q : (Tp, 3), (Tq, 3) int ndarray
-        Groth-ordered triangle vertices of each map.
-    triangle_pairs : (M, 2) int ndarray
-        Tentative triangle pairs.
-    declared : (M,) bool ndarray
-        Which pairs passed the threshold.
+    vertices_p, vertices_q : (M, 3) int ndarray
+        Landmark indices of the declared pairs' triangles, row m of
+        ``vertices_p`` paired vertex by vertex with row m of ``vertices_q``.
     log_lr : (M,) ndarray
         Their scores.
 
     Returns
     -------
     pairs : (K, 2) int ndarray
-        One-to-one landmark index pairs (p, q), sorted by p index.
+        Landmark index pairs (p, q), sorted by p index.
     n_conflicts : int
         Distinct candidate correspondences dropped as conflicting.
     """
-    chosen = triangle_pairs[declared]
-    if chosen.shape[0] == 0:
+    if len(vertices_p) == 0:
         return np.empty((0, 2), dtype=np.intp), 0
-    cand = np.stack(
-        [vertices_p[chosen[:, 0]].ravel(), vertices_q[chosen[:, 1]].ravel()], axis=1
-    )
-    score = np.repeat(log_lr[declared], 3)
+    cand = np.stack([np.ravel(vertices_p), np.ravel(vertices_q)], axis=1)
+    score = np.repeat(log_lr, 3)
     uniq, inverse, votes = np.unique(cand, axis=0, return_inverse=True, return_counts=True)
     best = np.full(uniq.shape[0], -np.inf)
     np.maximum.at(best, inverse.ravel(), score)
     order = np.lexsort((uniq[:, 1], uniq[:, 0], -best, -votes))
     used_p, used_q, keep = set(), set(), []
-    for k in order:  # K is a few landmarks per declared triangle, not pairs
+    for k in order:  # a few landmarks per declared triangle, not all pairs
         i, j = int(uniq[k, 0]), int(uniq[k, 1])
         if i in used_p or j in used_q:
             continue
@@ -141,5 +135,4 @@ def correspondences(vertices_p, vertices_q, triangle_pairs, declared, log_lr):
         used_q.add(j)
         keep.append(k)
     pairs = uniq[np.sort(np.asarray(keep))]
-    pairs = pairs[np.argsort(pairs[:, 0], kind="stable")]
     return pairs.astype(np.intp), int(uniq.shape[0] - len(keep))

@@ -16,10 +16,17 @@ import numpy as np
 from ._validation import check_points, check_sigma
 from .combining import CombinedMap, combine_maps, p_only_map
 from .matching import OBJECTIVES, assign, correspondences, resolve_log_tau
-from .statistic import Alignment, pairwise_cost
+from .statistic import Alignment, ccw_order, pairwise_cost
 from .triangles import Triangles, _triangulate
 
-METHODS = ("paper",)
+#: Matcher variants. "paper": the seed paper (Groth order, LP, τ, eq. 15).
+#: "cyclic": the paper with the order-robust statistic (best of the three
+#: cyclic vertex orders). "consensus": cyclic statistic + transform-consistent
+#: verification + landmark association (mapmerge.verification). "groth" and
+#: "astroalign": outside baselines (mapmerge.baselines).
+METHODS = ("paper", "cyclic", "consensus", "groth", "astroalign")
+#: Methods that score triangle pairs with the GLRT and solve the LP.
+LP_METHODS = ("paper", "cyclic", "consensus")
 
 #: Fewest landmark correspondences accepted as a match: one triangle's worth.
 MIN_MATCHED_LANDMARKS = 3
@@ -71,6 +78,7 @@ class MergeResult:
     tri_q: Triangles
     alignment: Alignment | None
     combined: CombinedMap
+    method: str = "paper"
 
     @property
     def merged(self) -> np.ndarray:
@@ -88,6 +96,11 @@ class MergeResult:
     def index_q(self) -> np.ndarray:
         return self.combined.index_q
 
+    @property
+    def cov(self) -> np.ndarray:
+        """(N, 2, 2) covariance of each combined-map row."""
+        return self.combined.cov
+
 
 def merge_maps(P, Q, sigma, tau=DEFAULT_TAU, method="paper", objective="lr") -> MergeResult:
     """Match two landmark maps and build their maximum-likelihood combination.
@@ -102,8 +115,9 @@ def merge_maps(P, Q, sigma, tau=DEFAULT_TAU, method="paper", objective="lr") -> 
     tau : float or str, default ``"chi2:0.01"``
         Threshold: a log-LR value, or ``"chi2:P"`` for the χ²₃ rule
         ``log τ = -½ χ²₃⁻¹(1 - P)``.
-    method : {"paper"}
-        Matcher variant.
+    method : {"paper", "cyclic", "consensus", "groth", "astroalign"}
+        Matcher variant (see ``METHODS``); "astroalign" needs the optional
+        ``astroalign`` package.
     objective : {"lr", "loglr"}
         LP objective: Σ Λ as in the paper, or Σ log Λ.
 
@@ -125,43 +139,77 @@ def merge_maps(P, Q, sigma, tau=DEFAULT_TAU, method="paper", objective="lr") -> 
     if objective not in OBJECTIVES:
         raise ValueError(f"objective must be one of {OBJECTIVES}, got {objective!r}")
 
-    return merge_at(P, Q, sigma, match_triangles(P, Q, sigma, objective), log_tau)
+    if method not in LP_METHODS:
+        from .baselines import BASELINES
+
+        return BASELINES[method](P, Q, sigma)
+    match = match_triangles(P, Q, sigma, objective, cyclic=method != "paper")
+    return merge_at(P, Q, sigma, match, log_tau, method)
 
 
 @dataclass(frozen=True)
 class TriangleMatch:
-    """Triangles of both maps and the LP's tentative pairs with their scores."""
+    """Triangles of both maps and the LP's tentative pairs with their scores.
+
+    ``p_vertices[m]`` and ``q_vertices[m]`` are the landmarks of pair m's
+    triangles, paired vertex by vertex: Groth order for the paper's
+    statistic, the best orientation-preserving correspondence for the
+    order-robust one.
+    """
 
     tri_p: Triangles
     tri_q: Triangles
     triangle_pairs: np.ndarray
     triangle_log_lr: np.ndarray
+    p_vertices: np.ndarray
+    q_vertices: np.ndarray
 
 
-def match_triangles(P: np.ndarray, Q: np.ndarray, sigma: float, objective: str) -> TriangleMatch:
+def match_triangles(
+    P: np.ndarray, Q: np.ndarray, sigma: float, objective: str, cyclic: bool = False
+) -> TriangleMatch:
     """Triangulate, score every pair and solve the LP (inputs already valid).
 
     The τ-independent part of ``merge_maps``: callers comparing several
     thresholds on one map pair run it once and ``merge_at`` per τ.
     """
     tri_p, tri_q = _triangulate(P), _triangulate(Q)
-    log_lr = -pairwise_cost(tri_p.coords, tri_q.coords) / (2.0 * sigma**2)
+    vp, vq = tri_p.vertices, tri_q.vertices
+    if cyclic:
+        vp = np.take_along_axis(vp, ccw_order(tri_p.coords), axis=1)
+        vq = np.take_along_axis(vq, ccw_order(tri_q.coords), axis=1)
+    cost, shift = pairwise_cost(P[vp], Q[vq], cyclic)
+    log_lr = -cost / (2.0 * sigma**2)
     triangle_pairs = assign(log_lr, objective)
-    scores = log_lr[triangle_pairs[:, 0], triangle_pairs[:, 1]]
-    return TriangleMatch(tri_p, tri_q, triangle_pairs, scores)
+    i, j = triangle_pairs[:, 0], triangle_pairs[:, 1]
+    roll = (np.arange(3)[None, :] + shift[i, j][:, None]) % 3
+    q_vertices = np.take_along_axis(vq[j], roll, axis=1)
+    return TriangleMatch(tri_p, tri_q, triangle_pairs, log_lr[i, j], vp[i], q_vertices)
 
 
 def merge_at(
-    P: np.ndarray, Q: np.ndarray, sigma: float, match: TriangleMatch, log_tau: float
+    P: np.ndarray, Q: np.ndarray, sigma: float, match: TriangleMatch, log_tau: float,
+    method: str = "paper",
 ) -> MergeResult:
     """Declare, associate landmarks and combine at one threshold log τ."""
+    if method == "consensus":
+        from .verification import consensus_merge
+
+        return consensus_merge(P, Q, sigma, match, log_tau)
     scores = match.triangle_log_lr
     declared = scores >= log_tau
     pairs, n_conflicts = correspondences(
-        match.tri_p.vertices, match.tri_q.vertices, match.triangle_pairs, declared, scores
+        match.p_vertices[declared], match.q_vertices[declared], scores[declared]
     )
+    return finish(P, Q, sigma, pairs, n_conflicts, match.triangle_pairs, scores, declared,
+                  log_tau, match.tri_p, match.tri_q, method)
+
+
+def finish(P, Q, sigma, pairs, n_conflicts, triangle_pairs, scores, declared, log_tau,
+           tri_p, tri_q, method) -> MergeResult:
+    """Align on the landmark pairs and build the result (no match below 3 pairs)."""
     if pairs.shape[0] < MIN_MATCHED_LANDMARKS:
-        alignment, combined = None, p_only_map(P)
+        alignment, combined = None, p_only_map(P, sigma)
         theta, t = float("nan"), np.full(2, np.nan)
     else:
         alignment, combined = combine_maps(P, Q, pairs, sigma)
@@ -172,12 +220,13 @@ def merge_at(
         t=t,
         pairs=pairs,
         n_conflicts=n_conflicts,
-        triangle_pairs=match.triangle_pairs,
+        triangle_pairs=triangle_pairs,
         triangle_log_lr=scores,
         declared=declared,
         log_tau=log_tau,
-        tri_p=match.tri_p,
-        tri_q=match.tri_q,
+        tri_p=tri_p,
+        tri_q=tri_q,
         alignment=alignment,
         combined=combined,
+        method=method,
     )

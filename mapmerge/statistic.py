@@ -37,7 +37,7 @@ def rotation(theta: float) -> np.ndarray:
     return np.array([[c, -s], [s, c]])
 
 
-def glrt(coords_p, coords_q, sigma) -> np.ndarray:
+def glrt(coords_p, coords_q, sigma, cyclic: bool = False) -> np.ndarray:
     """Log generalized likelihood ratios between every pair of triangles.
 
     Parameters
@@ -48,6 +48,13 @@ def glrt(coords_p, coords_q, sigma) -> np.ndarray:
         Triangles of map q in Groth order.
     sigma : float
         Known per-coordinate noise standard deviation, > 0.
+    cyclic : bool, default False
+        Order-robust statistic: both triangles are put in counter-clockwise
+        order and the best of the three cyclic orders of q is taken, i.e. the
+        best of every orientation-preserving vertex correspondence. A Groth
+        order flip of a near-isosceles triangle swaps two vertices (it
+        reverses orientation), so cyclic shifts of the Groth order alone
+        would not undo it; after CCW normalisation they do.
 
     Returns
     -------
@@ -62,20 +69,51 @@ def glrt(coords_p, coords_q, sigma) -> np.ndarray:
     cp = _check_triangles(coords_p, "coords_p")
     cq = _check_triangles(coords_q, "coords_q")
     sigma = check_sigma(sigma)
-    return -pairwise_cost(cp, cq) / (2.0 * sigma**2)
+    if cyclic:
+        cp = np.take_along_axis(cp, ccw_order(cp)[..., None], axis=1)
+        cq = np.take_along_axis(cq, ccw_order(cq)[..., None], axis=1)
+    cost, _ = pairwise_cost(cp, cq, cyclic)
+    return -cost / (2.0 * sigma**2)
 
 
-def pairwise_cost(cp: np.ndarray, cq: np.ndarray) -> np.ndarray:
-    """Minimum cost J* (Tp, Tq) of every triangle pair, as matrix products."""
+def ccw_order(coords: np.ndarray) -> np.ndarray:
+    """Permutation (T, 3) putting each triangle's vertices counter-clockwise."""
+    d1, d2 = coords[:, 1] - coords[:, 0], coords[:, 2] - coords[:, 0]
+    clockwise = d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0] < 0
+    return np.where(clockwise[:, None], [0, 2, 1], [0, 1, 2])
+
+
+def pairwise_cost(cp: np.ndarray, cq: np.ndarray, cyclic: bool = False):
+    """Minimum cost J* (Tp, Tq) of every triangle pair, as matrix products.
+
+    With ``cyclic``, ``cp`` and ``cq`` must already be counter-clockwise
+    (``ccw_order``) for the shifts to cover every orientation-preserving
+    correspondence.
+
+    Returns
+    -------
+    cost : (Tp, Tq) ndarray
+    shift : (Tp, Tq) int8 ndarray
+        The cyclic shift ``s`` of q's vertices that attains it (q vertex
+        ``(v + s) % 3`` pairs with p vertex ``v``); all zero unless ``cyclic``.
+    """
     pc = cp - cp.mean(axis=1, keepdims=True)
     qc = cq - cq.mean(axis=1, keepdims=True)
     px, py = pc[..., 0], pc[..., 1]
-    qx, qy = qc[..., 0], qc[..., 1]
-    alpha = -(px @ qx.T + py @ qy.T)
-    beta = -(px @ qy.T - py @ qx.T)
     gamma = 0.5 * ((pc**2).sum(axis=(1, 2))[:, None] + (qc**2).sum(axis=(1, 2))[None, :])
+    best, shift = None, None
+    for s in range(3 if cyclic else 1):
+        qs = np.roll(qc, -s, axis=1)
+        qx, qy = qs[..., 0], qs[..., 1]
+        r = np.hypot(px @ qx.T + py @ qy.T, px @ qy.T - py @ qx.T)  # √(α² + β²)
+        if best is None:
+            best, shift = r, np.zeros(r.shape, dtype=np.int8)
+        else:
+            better = r > best
+            best = np.where(better, r, best)
+            shift[better] = s
     # γ - r loses digits when the pair is nearly congruent; J* >= 0 exactly.
-    return np.maximum(gamma - np.hypot(alpha, beta), 0.0)
+    return np.maximum(gamma - best, 0.0), shift
 
 
 def paired_transforms(coords_p, coords_q):
@@ -129,6 +167,11 @@ class Alignment:
         ``-J* / (2σ²)``.
     dof : int
         ``2n - 3``: degrees of freedom of ``J*/σ²`` under H1.
+    cov : (3, 3) ndarray
+        Covariance of ``(θ*, t*_x, t*_y)``: inverse Fisher information with
+        the landmarks µ profiled out (Cramér-Rao bound, evaluated at µ*).
+    mu_cov : (n, 2, 2) ndarray
+        Covariance of each fused landmark µ*_v.
     """
 
     theta: float
@@ -137,6 +180,39 @@ class Alignment:
     cost: float
     log_lr: float
     dof: int
+    cov: np.ndarray
+    mu_cov: np.ndarray
+
+
+#: J = [[0, -1], [1, 0]]: dR/dθ = R J.
+_J = np.array([[0.0, -1.0], [1.0, 0.0]])
+
+
+def transform_covariance(mu: np.ndarray, theta: float, sigma: float):
+    """Covariance of (θ, t) and of each µ_v for n paired landmarks.
+
+    The Fisher information of eq. (5) in (θ, t, µ) has a 2x2 block 2I/σ² per
+    landmark; eliminating µ leaves ``(1/2σ²) [[Σ‖µ‖², bᵀ], [b, n I]]`` for
+    (θ, t) with ``b = R J Σµ``. The µ_v block of the inverse is
+    ``σ²/2 I + ¼ [Jµ_v, Rᵀ] Σ_θt [Jµ_v, Rᵀ]ᵀ``.
+    """
+    R = rotation(theta)
+    n = mu.shape[0]
+    b = R @ _J @ mu.sum(axis=0)
+    info = np.empty((3, 3))
+    info[0, 0] = np.sum(mu**2)
+    info[0, 1:] = info[1:, 0] = b
+    info[1:, 1:] = n * np.eye(2)
+    cov = 2.0 * sigma**2 * np.linalg.inv(info)
+    G = np.concatenate([(mu @ _J.T)[:, :, None], np.broadcast_to(R.T, (n, 2, 2))], axis=2)
+    mu_cov = 0.5 * sigma**2 * np.eye(2) + 0.25 * G @ cov @ G.transpose(0, 2, 1)
+    return cov, mu_cov
+
+
+def mapped_covariance(x: np.ndarray, theta: float, cov: np.ndarray, sigma: float) -> np.ndarray:
+    """Covariance (m, 2, 2) of q landmarks mapped into p's frame, x = Rᵀ(q - t)."""
+    G = np.concatenate([(-(x @ _J.T))[:, :, None], np.broadcast_to(-rotation(theta).T, (x.shape[0], 2, 2))], axis=2)
+    return sigma**2 * np.eye(2) + G @ cov @ G.transpose(0, 2, 1)
 
 
 def align(P, Q, sigma=1.0) -> Alignment:
@@ -172,6 +248,7 @@ def _align(P: np.ndarray, Q: np.ndarray, sigma: float) -> Alignment:
     theta, t, cost = float(theta[0]), t[0], float(cost[0])
     rot = rotation(theta)
     mu = 0.5 * (P + (Q - t) @ rot)  # (Q - t) @ R = rows of Rᵀ (q - t)
+    cov, mu_cov = transform_covariance(mu, theta, sigma)
     return Alignment(
         theta=theta,
         t=t,
@@ -179,6 +256,8 @@ def _align(P: np.ndarray, Q: np.ndarray, sigma: float) -> Alignment:
         cost=cost,
         log_lr=-cost / (2.0 * sigma**2),
         dof=2 * P.shape[0] - 3,
+        cov=cov,
+        mu_cov=mu_cov,
     )
 
 

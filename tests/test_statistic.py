@@ -164,3 +164,28 @@ def test_glrt_and_align_validate():
         mm.align(np.zeros((3, 2)), np.zeros((4, 2)))
     with pytest.raises(ValueError, match="P needs at least 2"):
         mm.align(np.zeros((1, 2)), np.zeros((1, 2)))
+
+
+def test_covariances_match_monte_carlo():
+    """Predicted cov of θ*, t*, µ* within 10 % of the empirical one."""
+    rng = np.random.default_rng(3)
+    K, m, sigma, theta = 8, 20000, 0.02, 0.7
+    mu = rng.uniform(-3, 5, size=(K, 2))
+    t = np.array([2.0, -1.0])
+    R = mm.rotation(theta)
+    P = mu + rng.normal(scale=sigma, size=(m, K, 2))
+    Q = mu @ R.T + t + rng.normal(scale=sigma, size=(m, K, 2))
+    th, tt, _ = paired_transforms(P, Q)
+    eta = np.column_stack([th, tt])
+    pred = mm.align(mu, mu @ R.T + t, sigma)  # evaluated at the truth
+    emp = np.cov(eta.T)
+    np.testing.assert_allclose(np.diag(emp), np.diag(pred.cov), rtol=0.1)
+    assert np.linalg.norm(emp - pred.cov) < 0.1 * np.linalg.norm(pred.cov)
+    c, s = np.cos(th), np.sin(th)
+    # µ*_v = ½ (p_v + Rᵀ (q_v - t)) per draw.
+    d = Q - tt[:, None, :]
+    mu_hat = 0.5 * (P + np.stack([c[:, None] * d[..., 0] + s[:, None] * d[..., 1],
+                                  -s[:, None] * d[..., 0] + c[:, None] * d[..., 1]], -1))
+    for v in range(K):
+        emp_v = np.cov(mu_hat[:, v].T)
+        assert np.linalg.norm(emp_v - pred.mu_cov[v]) < 0.1 * np.linalg.norm(pred.mu_cov[v])
