@@ -25,7 +25,7 @@ import pandas as pd
 
 from mapmerge import metrics
 
-CELL = ["n_landmarks", "overlap", "snr_db", "aspect", "method", "objective"]
+CELL = ["n_landmarks", "overlap", "snr_db", "aspect", "unrelated", "method", "objective"]
 #: P_FA values at which stored ROC curves are sampled (the full curve gives AUC).
 PFA_GRID = np.unique(np.r_[0.0, np.logspace(-5, 0, 151), np.linspace(0, 1, 201)])
 
@@ -52,6 +52,7 @@ def load(dirs) -> tuple[pd.DataFrame, pd.DataFrame]:
     trials, pairs = [], []
     for run in find_runs(dirs):
         t = pd.read_parquet(run / "trials.parquet")
+        t = t.merge(pd.read_parquet(run / "timings.parquet"), on=["trial", "tau"], how="left")
         p = pd.read_parquet(run / "pairs.parquet")
         cell = t[CELL + ["seed"]].iloc[0]
         trials.append(t)
@@ -100,12 +101,18 @@ def summary_table(trials: pd.DataFrame) -> pd.DataFrame:
     t["p_fa"] = _ratio(t.fp, t.fp + t.tn)
     t["recall_common"] = _ratio(t.tp, t.common)
     t["trials_with_fp"] = g["fp"].apply(lambda s: int((s > 0).sum()))
+    lm = g[["correct_pairs", "wrong_pairs", "n_common_landmarks"]].sum()
+    t["landmark_precision"] = _ratio(lm.correct_pairs, lm.correct_pairs + lm.wrong_pairs)
+    t["landmark_recall"] = _ratio(lm.correct_pairs, lm.n_common_landmarks)
+    t["false_merge_rate"] = g["false_merge"].mean()
     t["matched_rate"] = g["matched"].mean()
     t["success_rate"] = g["success"].mean()
     t["median_rot_err_deg"] = g["rot_err_deg"].median()
     t["median_rmse_over_sigma"] = (trials["rmse"] / trials["sigma"]).groupby(
         [trials[k] for k in keys]).median()
     t["mean_log_tau"] = g["log_tau"].mean()
+    t["median_ms_per_merge"] = 1e3 * (trials["time_match_s"] + trials["time_merge_s"]).groupby(
+        [trials[k] for k in keys]).median()
     return t.reset_index()
 
 
@@ -130,7 +137,7 @@ def aggregate(dirs, out) -> dict[str, Path]:
 
 
 def markdown_table(table: pd.DataFrame) -> str:
-    cols = ["n_landmarks", "overlap", "snr_db", "objective", "tau", "n_trials", "tp", "fp", "md",
+    cols = ["n_landmarks", "overlap", "snr_db", "unrelated", "method", "objective", "tau", "n_trials", "tp", "fp", "md",
             "precision", "md_rate", "recall_common", "success_rate", "median_rmse_over_sigma"]
     return table[cols].to_markdown(index=False, floatfmt=".3g")
 

@@ -8,6 +8,7 @@ allowed, before any work starts or any file is written.
 
 from __future__ import annotations
 
+import importlib.util
 import math
 from dataclasses import dataclass, field
 from typing import Optional
@@ -30,6 +31,8 @@ class ScenarioConfig:
     overlap: float = 0.75
     snr_db: float = 40.0
     aspect: float = 1.0
+    # Map q shares no landmark with map p (false-merge rates).
+    unrelated: bool = False
 
 
 @dataclass
@@ -88,6 +91,8 @@ def validate(cfg) -> None:
         _fail("scenario.aspect", s.aspect, "must be a positive number")
     if m.method not in METHODS:
         _fail("matcher.method", m.method, f"must be one of {list(METHODS)}")
+    if m.method == "astroalign" and importlib.util.find_spec("astroalign") is None:
+        _fail("matcher.method", m.method, "needs the optional package: pip install -e '.[baselines]'")
     if m.objective not in OBJECTIVES:
         _fail("matcher.objective", m.objective, f"must be one of {list(OBJECTIVES)}")
     if len(m.taus) == 0:

@@ -21,9 +21,10 @@ import pandas as pd
 
 import mapmerge as mm
 from mapmerge import metrics
+from mapmerge.baselines import BASELINES
 from mapmerge.merging import match_triangles, merge_at
 
-SCENARIO_KEYS = ("n_landmarks", "overlap", "snr_db", "aspect")
+SCENARIO_KEYS = ("n_landmarks", "overlap", "snr_db", "aspect", "unrelated")
 
 #: Columns whose values depend on the machine's speed, kept out of the
 #: bit-identical result files.
@@ -47,6 +48,7 @@ def make_trial_pair(root_seed: int, scenario: dict, k: int) -> mm.simulate.Scena
         snr_db=float(scenario["snr_db"]),
         rng=trial_seed(root_seed, scenario, k),
         aspect=float(scenario["aspect"]),
+        unrelated=bool(scenario["unrelated"]),
     )
 
 
@@ -60,41 +62,60 @@ def resolve_tau(rule: str, is_true: np.ndarray, scores: np.ndarray) -> float:
 def run_trial(root_seed: int, scenario: dict, matcher: dict, k: int):
     """One trial: draw the pair, match once, then evaluate every τ rule.
 
+    Baselines (no GLRT, no τ) give one row with ``tau = "none"``.
+
     Returns
     -------
     trial_rows : list of dict
         One row per τ rule: counts, map-level errors, timings.
     pairs : dict of arrays
-        One entry per tentative triangle pair (τ-independent).
+        One entry per tentative triangle pair (τ-independent; empty for
+        baselines).
     """
     sc = make_trial_pair(root_seed, scenario, k)
+    method = matcher["method"]
     start = time.perf_counter()
-    match = match_triangles(sc.p, sc.q, sc.sigma, matcher["objective"])
-    time_match = time.perf_counter() - start
-    vp, vq = match.tri_p.vertices, match.tri_q.vertices
-    scores = match.triangle_log_lr
-    is_true, consistent = metrics.triangle_labels(sc.ids_p, sc.ids_q, vp, vq, match.triangle_pairs)
+    if method in BASELINES:
+        results = [("none", BASELINES[method](sc.p, sc.q, sc.sigma))]
+        time_match = 0.0
+        times = [time.perf_counter() - start]
+        tri_p, tri_q = results[0][1].tri_p, results[0][1].tri_q
+    else:
+        match = match_triangles(sc.p, sc.q, sc.sigma, matcher["objective"], cyclic=method != "paper")
+        time_match = time.perf_counter() - start
+        tri_p, tri_q = match.tri_p, match.tri_q
+        vp, vq = tri_p.vertices, tri_q.vertices
+        lp_true, lp_consistent = metrics.triangle_labels(sc.ids_p, sc.ids_q, vp, vq, match.triangle_pairs)
+        results, times = [], []
+        for rule in matcher["taus"]:
+            start = time.perf_counter()
+            log_tau = resolve_tau(rule, lp_true, match.triangle_log_lr)
+            results.append((rule, merge_at(sc.p, sc.q, sc.sigma, match, log_tau, method)))
+            times.append(time.perf_counter() - start)
+    vp, vq = tri_p.vertices, tri_q.vertices
     n_common = len(metrics.common_triangles(sc.ids_p, sc.ids_q, vp, vq))
-
     rows = []
-    for rule in matcher["taus"]:
-        start = time.perf_counter()
-        log_tau = resolve_tau(rule, is_true, scores)
-        res = merge_at(sc.p, sc.q, sc.sigma, match, log_tau)
-        time_merge = time.perf_counter() - start
-        row = {"trial": k, "tau": rule, "log_tau": log_tau, "sigma": sc.sigma}
+    for (rule, res), time_merge in zip(results, times):
+        is_true, consistent = metrics.triangle_labels(sc.ids_p, sc.ids_q, vp, vq, res.triangle_pairs)
+        row = {"trial": k, "tau": rule, "log_tau": res.log_tau, "sigma": sc.sigma,
+               "n_common_landmarks": sc.n_common}
         row.update(metrics.detection_counts(is_true, res.declared, n_common))
         row["order_flips"] = int(np.sum(is_true & ~consistent))
         row.update(metrics.map_errors(sc, res))
+        row["false_merge"] = bool(res.matched and sc.n_common == 0)
         row["time_match_s"] = time_match
         row["time_merge_s"] = time_merge
         rows.append(row)
-    pairs = {
-        "trial": np.full(scores.size, k, dtype=np.int64),
-        "score": scores,
-        "label": is_true,
-        "order_consistent": consistent,
-    }
+    if method in BASELINES:
+        pairs = {"trial": np.empty(0, np.int64), "score": np.empty(0), "label": np.empty(0, bool),
+                 "order_consistent": np.empty(0, bool)}
+    else:
+        pairs = {
+            "trial": np.full(match.triangle_log_lr.size, k, dtype=np.int64),
+            "score": match.triangle_log_lr,
+            "label": lp_true,
+            "order_consistent": lp_consistent,
+        }
     return rows, pairs
 
 

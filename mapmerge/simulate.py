@@ -81,6 +81,7 @@ def make_pair(
     snr_db: float = 40.0,
     rng=None,
     aspect: float = DEFAULT_ASPECT,
+    unrelated: bool = False,
 ) -> Scenario:
     """Draw one overlapping map pair (DESIGN §4).
 
@@ -97,6 +98,10 @@ def make_pair(
         Randomness, normalised with ``np.random.default_rng``.
     aspect : float, default 1
         Width / height of each map's rectangle, > 0.
+    unrelated : bool, default False
+        Draw map q's landmarks of the overlap strip independently of map p's,
+        so the maps share no landmark (for false-merge rates); everything
+        else, σ included, is as in the related scenario.
 
     Returns
     -------
@@ -120,10 +125,15 @@ def make_pair(
     truth = np.concatenate([common, own_p, own_q])
     ids_p = np.concatenate([np.arange(c), c + np.arange(n - c)])
     ids_q = np.concatenate([np.arange(c), n + np.arange(n - c)])
+    world = truth
+    if unrelated:
+        # q's strip gets its own landmarks; σ is still set from the related world.
+        truth = np.concatenate([truth, _uniform(rng, c, shift, width, height)])
+        ids_q[:c] = 2 * n - c + np.arange(c)
     ids_p = ids_p[rng.permutation(n)]
     ids_q = ids_q[rng.permutation(n)]
 
-    sigma, sigma_bar2 = sigma_from_snr(truth, snr_db)
+    sigma, sigma_bar2 = sigma_from_snr(world, snr_db)
     theta = float(rng.uniform(-np.pi, np.pi))
     t = rng.uniform(-width, width, size=2)
     p = truth[ids_p] + rng.normal(0.0, sigma, size=(n, 2))

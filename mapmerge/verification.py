@@ -15,7 +15,9 @@ between unrelated triangles do not. ``consensus_merge``:
    n-point closed form, then associates *every* landmark one-to-one under
    the fitted transform with a χ²₂ gate on the Mahalanobis distance
    (assignment per connected component of the gated candidate graph), and
-   refits on all associations (``ASSOCIATION_ROUNDS`` times);
+   refits on all associations (``ASSOCIATION_ROUNDS`` times), and accepts
+   the match only if chance would rarely produce one as good
+   (``match_nfa``, an a contrario test);
 4. declares every triangle pair whose three landmarks are associated, so
    common landmarks appear once in the combined map.
 """
@@ -27,7 +29,8 @@ from scipy.optimize import linear_sum_assignment
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import ConvexHull, cKDTree
-from scipy.stats import chi2, poisson
+from scipy.special import gammaln
+from scipy.stats import chi2
 
 from .matching import correspondences
 from .statistic import _J, _align, mapped_covariance, paired_transforms, rotation
@@ -40,12 +43,10 @@ GATE_P = 1e-3
 MIN_CONSENSUS = 2
 #: Hypotheses scored against all candidates (the best-scoring pairs).
 MAX_HYPOTHESES = 256
-#: Significance of the final match: with ``m`` candidate pairs tried as
-#: hypotheses, a match of K associated landmarks is accepted when
-#: ``m · P(Poisson(λ) >= K - 3) <= MATCH_P``, λ the number of chance
-#: associations expected under the fitted transform (landmark density times
-#: the gates' areas over the overlap). Unrelated maps therefore give "no match".
-MATCH_P = 1e-4
+#: A match is accepted when its number of false alarms (``match_nfa``: the
+#: expected number of equally good chance matches among the hypotheses
+#: tried) is at most this. Unrelated maps therefore give "no match".
+MATCH_NFA = 1e-3
 #: Hypotheses (most inliers first) refitted on their inliers and recounted.
 REFINE = 8
 #: Refit-and-associate rounds after the consensus fit.
@@ -149,22 +150,34 @@ def associate(P, Q, alignment, sigma):
     return pairs[np.argsort(pairs[:, 0], kind="stable")]
 
 
-def match_significance(P, Q, alignment, n_pairs: int, n_hypotheses: int, sigma: float) -> float:
-    """Bonferroni p-value of ``n_pairs`` associations arising by chance.
+def match_nfa(P, Q, alignment, pairs, n_hypotheses: int, sigma: float) -> float:
+    """Number of false alarms of a match, a contrario (Moisan & Stival 2004).
 
-    Under "unrelated maps", each q landmark mapped inside map p's hull finds
-    a p landmark within its χ²₂ gate with probability ``ρ_p · π · gate ·
-    √det C_j`` (ρ_p the landmark density of p, C_j the gate covariance), so
-    the chance associations beyond the 3 that fix a hypothesis are about
-    Poisson(λ) with λ the sum of these probabilities.
+    Under "unrelated maps", a q landmark mapped inside map p's hull finds a p
+    landmark within Mahalanobis radius d² by chance with probability
+    ``α(d²) = ρ_p · π · √det C · d²`` (ρ_p the landmark density of p, C the
+    gate covariance). For the k tightest associations, the 3 that fix a
+    hypothesis excepted, chance gives them with probability at most
+    ``C(N, k - 3) α(d²_(k))^(k-3)`` among the N landmarks inside the hull;
+    with ``n_hypotheses`` hypotheses tried, NFA is the smallest
+    ``n_hypotheses · C(N, k - 3) · α(d²_(k))^(k-3)`` over k. A match with
+    NFA <= ``MATCH_NFA`` is expected to arise by chance at most that often.
     """
     x = (Q - alignment.t) @ rotation(alignment.theta)
     cov = mapped_covariance(x, alignment.theta, alignment.cov, sigma) + sigma**2 * np.eye(2)
     hull = ConvexHull(P)
     inside = np.all(x @ hull.equations[:, :2].T + hull.equations[:, 2] <= 0, axis=1)
     density = P.shape[0] / hull.volume  # a 2-D hull's "volume" is its area
-    lam = density * np.pi * chi2.isf(GATE_P, 2) * np.sqrt(np.linalg.det(cov[inside])).sum()
-    return float(min(1.0, n_hypotheses * poisson.sf(n_pairs - 4, lam)))
+    unit_area = density * np.pi * np.sqrt(np.linalg.det(cov[inside | np.isin(np.arange(len(Q)), pairs[:, 1])])).mean()
+    e = P[pairs[:, 0]] - x[pairs[:, 1]]
+    d2 = np.sort(np.einsum("ki,kij,kj->k", e, np.linalg.inv(cov[pairs[:, 1]]), e))
+    n_in = max(int(inside.sum()), len(pairs))
+    k = np.arange(4, len(pairs) + 1)
+    free = k - 3
+    alpha = np.minimum(1.0, unit_area * d2[k - 1])
+    log_comb = gammaln(n_in + 1) - gammaln(free + 1) - gammaln(n_in - free + 1)
+    log_nfa = np.log(n_hypotheses) + log_comb + free * np.log(np.maximum(alpha, 1e-300))
+    return float(np.exp(log_nfa.min())) if k.size else float(n_hypotheses)
 
 
 def declared_triangles(match, pairs, P, Q, sigma):
@@ -237,7 +250,7 @@ def consensus_merge(P, Q, sigma, match, log_tau):
             break
     if pairs.shape[0] >= 3:
         alignment = _align(P[pairs[:, 0]], Q[pairs[:, 1]], sigma)
-        if match_significance(P, Q, alignment, pairs.shape[0], cand.size, sigma) > MATCH_P:
+        if match_nfa(P, Q, alignment, pairs, cand.size, sigma) > MATCH_NFA:
             pairs = np.empty((0, 2), dtype=np.intp)
     tri_pairs, _, tri_scores = declared_triangles(match, pairs, P, Q, sigma)
     # Keep the LP's other tentative pairs (undeclared) so that their labels
