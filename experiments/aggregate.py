@@ -57,7 +57,15 @@ def load(dirs) -> tuple[pd.DataFrame, pd.DataFrame]:
         cell = t[CELL + ["seed"]].iloc[0]
         trials.append(t)
         pairs.append(p.assign(**cell.to_dict()))
-    return pd.concat(trials, ignore_index=True), pd.concat(pairs, ignore_index=True)
+    trials = pd.concat(trials, ignore_index=True)
+    dup = trials.duplicated(CELL + ["seed", "trial", "tau"])
+    if dup.any():
+        row = trials[dup].iloc[0]
+        raise ValueError(
+            f"trial {row.trial} of cell {row[CELL].to_dict()} (seed {row.seed}) appears in more than one "
+            "run; pass run directories that do not overlap (e.g. one n_trials setting per cell)"
+        )
+    return trials, pd.concat(pairs, ignore_index=True)
 
 
 def _sample(fpr, tpr, thr):
@@ -147,7 +155,11 @@ def main(argv=None) -> None:
     parser.add_argument("dirs", nargs="+", help="run or sweep directories")
     parser.add_argument("--out", required=True, help="directory for the tables")
     args = parser.parse_args(argv)
-    for name, path in aggregate(args.dirs, args.out).items():
+    try:
+        paths = aggregate(args.dirs, args.out)
+    except (ValueError, FileNotFoundError) as exc:
+        parser.exit(2, f"error: {exc}\n")
+    for name, path in paths.items():
         print(f"{name}: {path}")
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import time
 from pathlib import Path
 
 from hydra.core.utils import JobStatus
@@ -12,8 +13,19 @@ log = logging.getLogger(__name__)
 
 
 class AggregateOnMultirunEnd(Callback):
+    """Aggregate the runs this multirun wrote (not older runs in the same sweep dir).
+
+    A job always rewrites its ``trials.parquet`` when it ends, even when every
+    chunk was already done, so the runs of this multirun are those whose file
+    is newer than the multirun's start.
+    """
+
     def __init__(self) -> None:
         self.failed = 0
+        self.started = time.time()
+
+    def on_multirun_start(self, config, **kwargs) -> None:
+        self.started = time.time()
 
     def on_job_end(self, config, job_return, **kwargs) -> None:
         if job_return.status != JobStatus.COMPLETED:
@@ -23,9 +35,10 @@ class AggregateOnMultirunEnd(Callback):
         if self.failed:
             log.warning("%d job(s) failed: not aggregating", self.failed)
             return
-        from .aggregate import aggregate
+        from .aggregate import aggregate, find_runs
 
         sweep_dir = Path(config.hydra.sweep.dir)
+        runs = [r for r in find_runs([sweep_dir]) if (r / "trials.parquet").stat().st_mtime >= self.started - 1]
         out = Path(config.aggregate_dir) if config.aggregate_dir else sweep_dir / "aggregate"
-        aggregate([sweep_dir], out)
+        aggregate(runs, out)
         log.info("aggregated %s into %s", sweep_dir, out)

@@ -45,8 +45,17 @@ def _save(fig, out: Path, name: str) -> list[Path]:
     return paths
 
 
-def fig3(roc: pd.DataFrame, auc: pd.DataFrame, out: Path, name: str = "fig3") -> list[Path]:
-    """Monte Carlo ROC curves, one panel per (landmarks, overlap), one curve per SNR."""
+#: The calibrated τ rule marked on the Fig. 3 curves.
+CALIBRATED_RULE = "chi2:0.01"
+
+
+def fig3(roc: pd.DataFrame, auc: pd.DataFrame, out: Path, name: str = "fig3",
+         table: pd.DataFrame | None = None) -> list[Path]:
+    """Monte Carlo ROC curves, one panel per (landmarks, overlap), one curve per SNR.
+
+    With ``table``, the (P_FA, P_D) that the calibrated χ²₃ rule achieved is
+    marked on each curve.
+    """
     snrs = sorted(roc["snr_db"].unique())
     cmap = plt.get_cmap("viridis")
     colours = {s: cmap(i / max(len(snrs) - 1, 1)) for i, s in enumerate(snrs)}
@@ -61,6 +70,10 @@ def fig3(roc: pd.DataFrame, auc: pd.DataFrame, out: Path, name: str = "fig3") ->
             trials = int(a.n_trials.iloc[0])
             ax.step(curve.p_fa, curve.p_d, where="post", color=colours[snr],
                     label=f"{snr:g} dB (AUC {a.auc.iloc[0]:.3f})")
+            if table is not None:
+                cal = table[(table.n_landmarks == n) & np.isclose(table.overlap, ov)
+                            & (table.snr_db == snr) & (table.tau == CALIBRATED_RULE)]
+                ax.plot(cal.p_fa, cal.p_d, "o", ms=3.5, mfc="none", color=colours[snr])
         ax.plot([0, 1], [0, 1], color="0.8", lw=0.6, ls=":")
         ax.set_title(f"({letter}) {n} landmarks, {ov:.0%} overlap"
                      + (f", {trials:,} trials" if not panel.empty else ""))
@@ -68,11 +81,14 @@ def fig3(roc: pd.DataFrame, auc: pd.DataFrame, out: Path, name: str = "fig3") ->
         ax.set_ylim(0, 1.01)
         ax.grid(alpha=0.3, lw=0.4)
         ax.legend(loc="lower right", frameon=False, handlelength=1.2)
+    if table is not None:
+        fig.text(0.5, 0.005, f"circles: P_FA, P_D achieved by the calibrated rule τ = {CALIBRATED_RULE} "
+                 "(χ²₃ tail probability of true pairs)", ha="center", fontsize=6.5)
     for ax in axes[1]:
         ax.set_xlabel("probability of false alarm $P_{FA}$")
     for ax in axes[:, 0]:
         ax.set_ylabel("probability of detection $P_D$")
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.02, 1, 1))
     return _save(fig, out, name)
 
 
@@ -136,7 +152,8 @@ def draw_all(results: Path) -> list[Path]:
     with plt.rc_context(STYLE):
         if (results / "fig3" / "roc.csv").exists():
             made += fig3(pd.read_csv(results / "fig3" / "roc.csv"),
-                         pd.read_csv(results / "fig3" / "auc.csv"), results)
+                         pd.read_csv(results / "fig3" / "auc.csv"), results,
+                         table=pd.read_csv(results / "fig3" / "table.csv"))
         if (results / "fig1" / "examples_triangles.csv").exists():
             made += fig1(pd.read_csv(results / "fig1" / "examples_triangles.csv"), results)
         if (results / "fig2" / "examples_landmarks.csv").exists():

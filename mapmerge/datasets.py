@@ -1,0 +1,269 @@
+"""Real landmark maps: two agents' maps of Victoria Park (Sydney).
+
+The data (``mapmerge/data/victoria_park/``, see its SOURCES.md) is the iSAM
+observation log of a vehicle driving among 151 trees, the reference
+(optimised) trajectory and the reference tree map. ``victoria_park`` splits
+the drive at a pose index into agent p (the poses before) and agent q (the
+poses from there on). Each agent builds its own map, in the frame of its own
+first pose, from its own observations only:
+
+- ``source="reference"``: every observation is placed with the reference
+  pose it was taken from and each tree's observations are averaged. The
+  per-tree covariance is the pooled scatter of one observation, divided by
+  the tree's number of observations.
+- ``source="slam"``: the agent solves its own SLAM problem with GTSAM
+  (optional extra ``[slam]``) from its own odometry and tree observations,
+  anchored at its first pose, and reports each tree's marginal covariance.
+
+Pose and landmark ids share one number space in the log; poses are counted
+in the order they appear in the odometry chain. The reference tree map's row
+k is the k-th distinct tree id in order of first appearance, and k is the
+landmark id used for ground truth.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .statistic import rotation, wrap_angle
+
+#: Where the bundled copy of the data lives.
+DATA_DIR = Path(__file__).resolve().parent / "data" / "victoria_park"
+LOG_FILE = "victoria_park.txt"
+TRAJECTORY_FILE = "ISAM2_GT_victoriaPark.txt"
+TREES_FILE = "ISAM2_GT_victoriaPark_lm.txt"
+SOURCES = ("reference", "slam")
+#: The cut of the project's tests and README: 82 and 135 trees, 66 common.
+DEFAULT_CUT = 3483
+
+
+class DatasetError(ValueError):
+    """A data file is missing or malformed."""
+
+
+@dataclass(frozen=True)
+class VictoriaParkLog:
+    """The parsed observation log and reference solution.
+
+    Attributes
+    ----------
+    odometry : (P-1, 3) ndarray
+        Relative motion (dx, dy, dθ) from pose i to pose i+1 (pose indices).
+    odometry_info : (P-1, 6) ndarray
+        The six information entries of each odometry line, as in the file.
+    obs_pose : (M,) int ndarray
+        Pose index of each tree observation.
+    obs_tree : (M,) int ndarray
+        Tree id (row of the reference tree map) of each observation.
+    obs_xy : (M, 2) ndarray
+        The tree in the robot frame, metres.
+    trajectory : (P_ref, 3) ndarray
+        Reference pose (x, y, θ) of pose index i.
+    trees : (151, 2) ndarray
+        Reference tree positions in the frame of pose 0.
+    pose_ids : (P,) int ndarray
+        File id of pose index i.
+    tree_file_ids : (151,) int ndarray
+        File id of tree id k.
+    """
+
+    odometry: np.ndarray
+    odometry_info: np.ndarray
+    obs_pose: np.ndarray
+    obs_tree: np.ndarray
+    obs_xy: np.ndarray
+    trajectory: np.ndarray
+    trees: np.ndarray
+    pose_ids: np.ndarray
+    tree_file_ids: np.ndarray
+    path: Path
+
+
+@dataclass(frozen=True)
+class AgentPair:
+    """Two agents' maps with ground truth, shaped like ``simulate.Scenario``.
+
+    ``p``/``q`` are the maps in each agent's first-pose frame, ``ids_p``/
+    ``ids_q`` tree ids, ``truth`` the reference trees in p's frame (indexed
+    by id), ``theta``/``t`` the true transform ``q ≈ R(θ) p + t``,
+    ``sigma`` the RMS per-coordinate standard deviation of the map entries
+    (from the agents' own covariances, no ground truth), ``cov_p``/``cov_q``
+    per-tree covariances, ``poses_p``/``poses_q`` the agents' pose counts.
+    """
+
+    p: np.ndarray
+    q: np.ndarray
+    ids_p: np.ndarray
+    ids_q: np.ndarray
+    truth: np.ndarray
+    sigma: float
+    theta: float
+    t: np.ndarray
+    cov_p: np.ndarray
+    cov_q: np.ndarray
+    cut: int
+    source: str
+    poses_p: int
+    poses_q: int
+
+    @property
+    def n_common(self) -> int:
+        return int(np.intersect1d(self.ids_p, self.ids_q).size)
+
+
+def _read_table(path: Path, columns: int) -> np.ndarray:
+    if not path.is_file():
+        raise DatasetError(f"Victoria Park file not found: {path}")
+    try:
+        table = np.loadtxt(path, ndmin=2)
+    except ValueError as exc:
+        raise DatasetError(f"{path} is malformed: {exc}") from None
+    if table.shape[1] != columns:
+        raise DatasetError(f"{path} must have {columns} columns, got {table.shape[1]}")
+    return table
+
+
+def load_log(path=None) -> VictoriaParkLog:
+    """Parse the Victoria Park files from ``path`` (default: the bundled copy).
+
+    Raises
+    ------
+    DatasetError
+        If a file is missing or a line does not parse.
+    """
+    root = Path(path) if path is not None else DATA_DIR
+    log = root / LOG_FILE
+    if not log.is_file():
+        raise DatasetError(f"Victoria Park file not found: {log}")
+    pose_ids: list[int] = []
+    odometry, info, observations = [], [], []
+    with open(log) as fh:
+        for number, line in enumerate(fh, 1):
+            fields = line.split()
+            if not fields:
+                continue
+            try:
+                if fields[0] == "ODOMETRY" and len(fields) == 12:
+                    a, b = int(fields[1]), int(fields[2])
+                    if not pose_ids:
+                        pose_ids.append(a)
+                    if a != pose_ids[-1]:
+                        raise ValueError(f"odometry from pose {a} does not continue the chain at {pose_ids[-1]}")
+                    pose_ids.append(b)
+                    odometry.append([float(v) for v in fields[3:6]])
+                    info.append([float(v) for v in fields[6:12]])
+                elif fields[0] == "LANDMARK" and len(fields) == 8:
+                    observations.append((int(fields[1]), int(fields[2]), float(fields[3]), float(fields[4])))
+                else:
+                    raise ValueError(f"unknown record {fields[0]!r} with {len(fields)} fields")
+            except ValueError as exc:
+                raise DatasetError(f"{log}:{number}: {exc}") from None
+    index = {pid: i for i, pid in enumerate(pose_ids)}
+    tree_ids: dict[int, int] = {}
+    for _, lm, _, _ in observations:
+        tree_ids.setdefault(lm, len(tree_ids))
+    try:
+        obs_pose = np.array([index[p] for p, _, _, _ in observations], dtype=np.intp)
+    except KeyError as exc:
+        raise DatasetError(f"{log}: observation from unknown pose {exc}") from None
+    trajectory = _read_table(root / TRAJECTORY_FILE, 3)
+    trees = _read_table(root / TREES_FILE, 2)
+    if len(trees) != len(tree_ids):
+        raise DatasetError(f"{root / TREES_FILE} has {len(trees)} trees, the log observes {len(tree_ids)}")
+    return VictoriaParkLog(
+        odometry=np.array(odometry),
+        odometry_info=np.array(info),
+        obs_pose=obs_pose,
+        obs_tree=np.array([tree_ids[lm] for _, lm, _, _ in observations], dtype=np.intp),
+        obs_xy=np.array([[x, y] for _, _, x, y in observations]),
+        trajectory=trajectory,
+        trees=trees,
+        pose_ids=np.array(pose_ids, dtype=np.int64),
+        tree_file_ids=np.array(list(tree_ids), dtype=np.int64),
+        path=log,
+    )
+
+
+def _to_frame(points: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """World points into the frame of ``pose`` = (x, y, θ): R(θ)ᵀ (w - t)."""
+    return (points - pose[:2]) @ rotation(pose[2])
+
+
+def _reference_map(log: VictoriaParkLog, sel: np.ndarray):
+    """Trees of one agent from its observations placed with reference poses."""
+    poses = log.trajectory[log.obs_pose[sel]]
+    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+    xy = log.obs_xy[sel]
+    world = poses[:, :2] + np.column_stack([c * xy[:, 0] - s * xy[:, 1], s * xy[:, 0] + c * xy[:, 1]])
+    ids, inverse, counts = np.unique(log.obs_tree[sel], return_inverse=True, return_counts=True)
+    mean = np.zeros((ids.size, 2))
+    np.add.at(mean, inverse, world)
+    mean /= counts[:, None]
+    resid = world - mean[inverse]
+    dof = 2 * (len(world) - ids.size)
+    # Pooled variance of one observation per coordinate, from this agent's scatter.
+    var_obs = float(np.sum(resid**2) / dof) if dof > 0 else float(np.mean(resid**2) + 1.0)
+    cov = (var_obs / counts)[:, None, None] * np.eye(2)
+    return ids, mean, cov
+
+
+def victoria_park(cut: int = DEFAULT_CUT, source: str = "reference", path=None) -> AgentPair:
+    """Two agents' tree maps of Victoria Park, split at pose index ``cut``.
+
+    Parameters
+    ----------
+    cut : int, default 3483
+        Agent p drives poses ``0 .. cut-1``, agent q ``cut ..`` the end
+        (pose indices counted along the odometry chain).
+    source : {"reference", "slam"}
+        How each agent builds its map (see the module docstring).
+    path : path, optional
+        Folder holding the three data files; default the bundled copy.
+
+    Returns
+    -------
+    AgentPair
+
+    Raises
+    ------
+    ValueError
+        On a bad ``cut`` or ``source``; ``DatasetError`` on bad files.
+    """
+    if source not in SOURCES:
+        raise ValueError(f"source must be one of {SOURCES}, got {source!r}")
+    log = load_log(path)
+    n_ref = log.trajectory.shape[0]
+    if isinstance(cut, bool) or int(cut) != cut or not 1 <= cut < n_ref - 1:
+        raise ValueError(f"cut must be an integer pose index in [1, {n_ref - 2}], got {cut!r}")
+    cut = int(cut)
+    # Observations from poses without a reference pose cannot be placed.
+    valid = log.obs_pose < n_ref
+    sel_p, sel_q = valid & (log.obs_pose < cut), valid & (log.obs_pose >= cut)
+    first_p, first_q = log.trajectory[0], log.trajectory[cut]
+    if source == "reference":
+        ids_p, world_p, cov_p = _reference_map(log, sel_p)
+        ids_q, world_q, cov_q = _reference_map(log, sel_q)
+        rot_p, rot_q = rotation(first_p[2]), rotation(first_q[2])
+        p, q = _to_frame(world_p, first_p), _to_frame(world_q, first_q)
+        cov_p = rot_p.T @ cov_p @ rot_p
+        cov_q = rot_q.T @ cov_q @ rot_q
+    else:
+        from ._slam import agent_map
+
+        ids_p, p, cov_p = agent_map(log, 0, cut)
+        ids_q, q, cov_q = agent_map(log, cut, len(log.pose_ids))
+    if len(ids_p) < 3 or len(ids_q) < 3:
+        raise ValueError(f"cut={cut} leaves an agent with fewer than 3 trees")
+    theta = float(wrap_angle(first_p[2] - first_q[2]))
+    t = (first_p[:2] - first_q[:2]) @ rotation(first_q[2])
+    sigma = float(np.sqrt(np.mean(np.concatenate([np.trace(cov_p, axis1=1, axis2=2),
+                                                   np.trace(cov_q, axis1=1, axis2=2)]) / 2)))
+    return AgentPair(
+        p=p, q=q, ids_p=ids_p, ids_q=ids_q,
+        truth=_to_frame(log.trees, first_p),
+        sigma=sigma, theta=theta, t=t, cov_p=cov_p, cov_q=cov_q,
+        cut=cut, source=source, poses_p=cut, poses_q=n_ref - cut,
+    )
