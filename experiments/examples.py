@@ -10,9 +10,8 @@ import numpy as np
 import pandas as pd
 
 from mapmerge import metrics
-from mapmerge.merging import match_triangles, merge_at
 
-from .trials import make_trial_pair, resolve_tau
+from .trials import make_trial_pair, merge_trial
 
 
 def _triangle_status(n_tri, side, triangle_pairs, is_true, declared, common):
@@ -41,14 +40,13 @@ def example_tables(seed: int, scenario: dict, matcher: dict, trials) -> dict[str
     tri_rows, lm_rows = [], []
     for k in trials:
         sc = make_trial_pair(seed, scenario, k)
-        match = match_triangles(sc.p, sc.q, sc.sigma, matcher["objective"])
-        vp, vq = match.tri_p.vertices, match.tri_q.vertices
-        is_true, _ = metrics.triangle_labels(sc.ids_p, sc.ids_q, vp, vq, match.triangle_pairs)
+        _, _, results, _ = merge_trial(sc, matcher)
+        rule, res, _ = results[0]
+        vp, vq = res.tri_p.vertices, res.tri_q.vertices
+        is_true, _ = metrics.triangle_labels(sc.ids_p, sc.ids_q, vp, vq, res.triangle_pairs)
         common = metrics.common_triangles(sc.ids_p, sc.ids_q, vp, vq)
-        rule = matcher["taus"][0]
-        res = merge_at(sc.p, sc.q, sc.sigma, match, resolve_tau(rule, is_true, match.triangle_log_lr))
-        for side, (name, tri) in enumerate((("p", match.tri_p), ("q", match.tri_q))):
-            status = _triangle_status(len(tri), side, match.triangle_pairs, is_true, res.declared, common)
+        for side, (name, tri) in enumerate((("p", res.tri_p), ("q", res.tri_q))):
+            status = _triangle_status(len(tri), side, res.triangle_pairs, is_true, res.declared, common)
             xy = tri.coords.reshape(len(tri), 6)
             tri_rows.append(pd.DataFrame({
                 "trial": k, "map": name, "tau": rule, "status": status,
@@ -64,7 +62,7 @@ def example_tables(seed: int, scenario: dict, matcher: dict, trials) -> dict[str
         ):
             lm_rows.append(pd.DataFrame({
                 "trial": k, "kind": kind, "x": pts[:, 0], "y": pts[:, 1], "id": ids,
-                "origin": origin, "sigma": sc.sigma, "snr_db": sc.snr_db, "tau": rule,
+                "origin": origin, "sigma": sc.sigma, "tau": rule,
             }))
     return {
         "example_triangles": pd.concat(tri_rows, ignore_index=True),

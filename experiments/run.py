@@ -36,7 +36,7 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm.auto import tqdm
 
 from .schema import ConfigError, register_configs, validate
-from .trials import SCENARIO_KEYS, TIME_COLUMNS, cell_key, run_chunk
+from .trials import TIME_COLUMNS, cell_key, run_chunk
 from .examples import example_tables
 
 log = logging.getLogger(__name__)
@@ -106,7 +106,7 @@ def run(cfg: DictConfig, output_dir: str | Path) -> Path:
     chunk_dir.mkdir(parents=True, exist_ok=True)
     OmegaConf.save(cfg, out / "config.yaml", resolve=True)
 
-    scenario = {k: cfg.scenario[k] for k in SCENARIO_KEYS}
+    scenario = OmegaConf.to_container(cfg.scenario)
     matcher = OmegaConf.to_container(cfg.matcher)
     n, size, seed = cfg.mc.n_trials, cfg.mc.chunk_size, cfg.mc.seed
     run_key = _run_key(cfg)

@@ -15,10 +15,12 @@ from typing import Optional
 
 from hydra.core.config_store import ConfigStore
 
+from mapmerge.datasets import SOURCES
 from mapmerge.matching import OBJECTIVES, resolve_log_tau
 from mapmerge.merging import METHODS
 
 BACKENDS = ("loky", "dask")
+KINDS = ("synthetic", "victoria_park")
 
 
 class ConfigError(ValueError):
@@ -27,12 +29,17 @@ class ConfigError(ValueError):
 
 @dataclass
 class ScenarioConfig:
+    # "synthetic" (mapmerge.simulate) or "victoria_park" (real data: cut, source).
+    kind: str = "synthetic"
     n_landmarks: int = 100
     overlap: float = 0.75
     snr_db: float = 40.0
     aspect: float = 1.0
     # Map q shares no landmark with map p (false-merge rates).
     unrelated: bool = False
+    # Victoria Park: pose index where agent q takes over, and how agents map.
+    cut: int = 3483
+    source: str = "reference"
 
 
 @dataclass
@@ -79,6 +86,17 @@ def _fail(key: str, value, allowed: str):
 def validate(cfg) -> None:
     """Range-check a composed config; raise ConfigError on the first bad key."""
     s, m, mc = cfg.scenario, cfg.matcher, cfg.mc
+    if s.kind not in KINDS:
+        _fail("scenario.kind", s.kind, f"must be one of {list(KINDS)}")
+    if s.kind == "victoria_park":
+        if not 1 <= s.cut <= 6966:
+            _fail("scenario.cut", s.cut, "must be a pose index in [1, 6966]")
+        if s.source not in SOURCES:
+            _fail("scenario.source", s.source, f"must be one of {list(SOURCES)}")
+        if s.source == "slam" and importlib.util.find_spec("gtsam") is None:
+            _fail("scenario.source", s.source, "needs GTSAM: pip install -e '.[slam]'")
+        if mc.n_trials != 1:
+            _fail("mc.n_trials", mc.n_trials, "must be 1 for a real data set (its maps are fixed)")
     if s.n_landmarks < 3:
         _fail("scenario.n_landmarks", s.n_landmarks, "must be an integer >= 3")
     if not (0.0 < s.overlap <= 1.0):

@@ -12,6 +12,7 @@ The cell key hashes the *scenario* only, so every matcher sees the same maps.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import time
@@ -22,18 +23,26 @@ import pandas as pd
 import mapmerge as mm
 from mapmerge import metrics
 from mapmerge.baselines import BASELINES
+from mapmerge.datasets import victoria_park
 from mapmerge.merging import match_triangles, merge_at
 
 SCENARIO_KEYS = ("n_landmarks", "overlap", "snr_db", "aspect", "unrelated")
+#: Keys of a real-data scenario (``kind: victoria_park``).
+DATASET_KEYS = ("cut", "source")
 
 #: Columns whose values depend on the machine's speed, kept out of the
 #: bit-identical result files.
 TIME_COLUMNS = ("time_match_s", "time_merge_s")
 
 
+def scientific_keys(scenario: dict) -> tuple[str, ...]:
+    return DATASET_KEYS if scenario.get("kind", "synthetic") == "victoria_park" else SCENARIO_KEYS
+
+
 def cell_key(scenario: dict) -> int:
     """Stable 63-bit key of a scenario's scientific parameters."""
-    canon = json.dumps({k: float(scenario[k]) for k in SCENARIO_KEYS}, sort_keys=True)
+    canon = json.dumps({k: scenario[k] if isinstance(scenario[k], str) else float(scenario[k])
+                        for k in scientific_keys(scenario)}, sort_keys=True)
     return int.from_bytes(hashlib.sha256(canon.encode()).digest()[:8], "big") >> 1
 
 
@@ -41,7 +50,15 @@ def trial_seed(root_seed: int, scenario: dict, k: int) -> np.random.SeedSequence
     return np.random.SeedSequence(int(root_seed), spawn_key=(cell_key(scenario), int(k)))
 
 
-def make_trial_pair(root_seed: int, scenario: dict, k: int) -> mm.simulate.Scenario:
+@functools.lru_cache(maxsize=8)
+def _victoria_park(cut: int, source: str):
+    return victoria_park(cut=cut, source=source)
+
+
+def make_trial_pair(root_seed: int, scenario: dict, k: int):
+    """The map pair of trial k: synthetic (seeded) or the real data set."""
+    if scenario.get("kind", "synthetic") == "victoria_park":
+        return _victoria_park(int(scenario["cut"]), str(scenario["source"]))
     return mm.simulate.make_pair(
         n_landmarks=int(scenario["n_landmarks"]),
         overlap=float(scenario["overlap"]),
@@ -59,46 +76,59 @@ def resolve_tau(rule: str, is_true: np.ndarray, scores: np.ndarray) -> float:
     return mm.resolve_log_tau(rule)
 
 
+def merge_trial(sc, matcher: dict):
+    """Run a matcher on one map pair for every τ rule, timing each stage.
+
+    Returns
+    -------
+    match : TriangleMatch or None
+        The LP's tentative pairs (None for baselines, which have no τ and
+        give a single result under the rule ``"none"``).
+    lp_labels : (is_true, order_consistent) of the tentative pairs, or None.
+    results : list of (rule, MergeResult, time_merge_s)
+    time_match : float
+    """
+    method = matcher["method"]
+    start = time.perf_counter()
+    if method in BASELINES:
+        res = BASELINES[method](sc.p, sc.q, sc.sigma)
+        return None, None, [("none", res, time.perf_counter() - start)], 0.0
+    match = match_triangles(sc.p, sc.q, sc.sigma, matcher["objective"], cyclic=method != "paper")
+    time_match = time.perf_counter() - start
+    labels = metrics.triangle_labels(
+        sc.ids_p, sc.ids_q, match.tri_p.vertices, match.tri_q.vertices, match.triangle_pairs
+    )
+    results = []
+    for rule in matcher["taus"]:
+        start = time.perf_counter()
+        log_tau = resolve_tau(rule, labels[0], match.triangle_log_lr)
+        res = merge_at(sc.p, sc.q, sc.sigma, match, log_tau, method)
+        results.append((rule, res, time.perf_counter() - start))
+    return match, labels, results, time_match
+
+
 def run_trial(root_seed: int, scenario: dict, matcher: dict, k: int):
     """One trial: draw the pair, match once, then evaluate every τ rule.
-
-    Baselines (no GLRT, no τ) give one row with ``tau = "none"``.
 
     Returns
     -------
     trial_rows : list of dict
-        One row per τ rule: counts, map-level errors, timings.
+        One row per τ rule (``"none"`` for baselines): counts, map-level
+        errors, timings.
     pairs : dict of arrays
         One entry per tentative triangle pair (τ-independent; empty for
         baselines).
     """
     sc = make_trial_pair(root_seed, scenario, k)
-    method = matcher["method"]
-    start = time.perf_counter()
-    if method in BASELINES:
-        results = [("none", BASELINES[method](sc.p, sc.q, sc.sigma))]
-        time_match = 0.0
-        times = [time.perf_counter() - start]
-        tri_p, tri_q = results[0][1].tri_p, results[0][1].tri_q
-    else:
-        match = match_triangles(sc.p, sc.q, sc.sigma, matcher["objective"], cyclic=method != "paper")
-        time_match = time.perf_counter() - start
-        tri_p, tri_q = match.tri_p, match.tri_q
-        vp, vq = tri_p.vertices, tri_q.vertices
-        lp_true, lp_consistent = metrics.triangle_labels(sc.ids_p, sc.ids_q, vp, vq, match.triangle_pairs)
-        results, times = [], []
-        for rule in matcher["taus"]:
-            start = time.perf_counter()
-            log_tau = resolve_tau(rule, lp_true, match.triangle_log_lr)
-            results.append((rule, merge_at(sc.p, sc.q, sc.sigma, match, log_tau, method)))
-            times.append(time.perf_counter() - start)
+    match, labels, results, time_match = merge_trial(sc, matcher)
+    tri_p, tri_q = results[0][1].tri_p, results[0][1].tri_q
     vp, vq = tri_p.vertices, tri_q.vertices
     n_common = len(metrics.common_triangles(sc.ids_p, sc.ids_q, vp, vq))
     rows = []
-    for (rule, res), time_merge in zip(results, times):
+    for rule, res, time_merge in results:
         is_true, consistent = metrics.triangle_labels(sc.ids_p, sc.ids_q, vp, vq, res.triangle_pairs)
         row = {"trial": k, "tau": rule, "log_tau": res.log_tau, "sigma": sc.sigma,
-               "n_common_landmarks": sc.n_common}
+               "n_p": len(sc.p), "n_q": len(sc.q), "n_common_landmarks": sc.n_common}
         row.update(metrics.detection_counts(is_true, res.declared, n_common))
         row["order_flips"] = int(np.sum(is_true & ~consistent))
         row.update(metrics.map_errors(sc, res))
@@ -106,15 +136,15 @@ def run_trial(root_seed: int, scenario: dict, matcher: dict, k: int):
         row["time_match_s"] = time_match
         row["time_merge_s"] = time_merge
         rows.append(row)
-    if method in BASELINES:
+    if match is None:
         pairs = {"trial": np.empty(0, np.int64), "score": np.empty(0), "label": np.empty(0, bool),
                  "order_consistent": np.empty(0, bool)}
     else:
         pairs = {
             "trial": np.full(match.triangle_log_lr.size, k, dtype=np.int64),
             "score": match.triangle_log_lr,
-            "label": lp_true,
-            "order_consistent": lp_consistent,
+            "label": labels[0],
+            "order_consistent": labels[1],
         }
     return rows, pairs
 

@@ -36,7 +36,9 @@ def _small(**mc):
 
 @pytest.mark.parametrize("group, option", [(g, o) for g, opts in GROUPS.items() for o in opts])
 def test_every_group_option_composes(group, option):
-    cfg = _compose([f"{group}={option}"])
+    # A real data set is one fixed map pair: one trial.
+    extra = ["mc.n_trials=1"] if option == "victoria_park" else []
+    cfg = _compose([f"{group}={option}", *extra])
     validate(cfg)
 
 
@@ -192,3 +194,13 @@ def test_multirun_end_to_end_through_aggregation_and_figures(tmp_path):
     made = draw_all(results)
     assert {p.name for p in made} == {f"fig{i}.{e}" for i in (1, 2, 3) for e in ("png", "pdf")}
     assert all(p.stat().st_size > 10_000 for p in made)
+
+
+def test_victoria_park_preset_runs_real_data(tmp_path):
+    proc = _cli(["-m", "experiment=victoria_park", "scenario.cut=3483", "scenario.source=reference",
+                 "matcher.method=paper,consensus", "mc.progress=false"], tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    runs = sorted((tmp_path / "outputs" / "sweeps" / "victoria_park").glob("*/trials.parquet"))
+    trials = pd.concat([pd.read_parquet(r) for r in runs]).set_index("method")
+    assert list(trials.n_p) == [82, 82] and list(trials.n_common_landmarks) == [66, 66]
+    assert trials.loc["consensus", "rot_err_deg"] < 1 and trials.loc["consensus", "trans_err"] < 1

@@ -1,0 +1,116 @@
+"""Real data: every matcher on two agents' maps of Victoria Park (results/victoria_park/).
+
+    python -m experiments.victoria            # run the preset, then table and figure
+    python -m experiments.victoria --tables   # only rebuild them from the last run
+
+Runs ``experiment=victoria_park`` (6 cut points x 2 map sources x 5 methods;
+the ``slam`` source is skipped when GTSAM is not installed, ``astroalign``
+when astroalign is not) and writes ``table.csv`` / ``table.md``: trees per
+agent, common trees, correspondences found (correct / wrong), rotation and
+translation error, combined-map RMSE against the reference tree map, and
+time per merge; and ``victoria_park.png`` / ``.pdf``: both agents' maps, the
+merged map and the reference trees at the default cut.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import pandas as pd  # noqa: E402
+
+from mapmerge.datasets import DEFAULT_CUT  # noqa: E402
+
+from .aggregate import find_runs  # noqa: E402
+from .figures import STYLE, _save  # noqa: E402
+from .paper import _call  # noqa: E402
+
+SWEEP = Path("outputs/sweeps/victoria_park")
+COLUMNS = {
+    "cut": "cut", "source": "source", "method": "method", "n_p": "trees p", "n_q": "trees q",
+    "n_common_landmarks": "common", "correct_pairs": "correct", "wrong_pairs": "wrong",
+    "rot_err_deg": "rot err (deg)", "trans_err": "trans err (m)", "rmse": "RMSE (m)",
+    "ms": "time (ms)",
+}
+
+
+def load_runs(sweep: Path) -> tuple[pd.DataFrame, pd.DataFrame]:
+    trials, examples = [], []
+    for run in find_runs([sweep]):
+        t = pd.read_parquet(run / "trials.parquet")
+        t = t.merge(pd.read_parquet(run / "timings.parquet"), on=["trial", "tau"])
+        trials.append(t)
+        if (run / "example_landmarks.parquet").exists():
+            cell = t[["cut", "source", "method"]].iloc[0].to_dict()
+            examples.append(pd.read_parquet(run / "example_landmarks.parquet").assign(**cell))
+    return pd.concat(trials, ignore_index=True), pd.concat(examples, ignore_index=True)
+
+
+def table(trials: pd.DataFrame) -> pd.DataFrame:
+    t = trials.assign(ms=1e3 * (trials.time_match_s + trials.time_merge_s))
+    t = t[list(COLUMNS)].sort_values(["source", "cut", "method"])
+    return t.rename(columns=COLUMNS)
+
+
+def figure(examples: pd.DataFrame, out: Path, cut: int = DEFAULT_CUT, method: str = "consensus") -> list[Path]:
+    """Agent maps in their own frames, and the merged map on the reference trees."""
+    sources = sorted(examples.source.unique())
+    with plt.rc_context(STYLE):
+        fig, axes = plt.subplots(len(sources), 3, figsize=(7.0, 2.6 * len(sources)), squeeze=False)
+        for row, source in zip(axes, sources):
+            ex = examples[(examples.cut == cut) & (examples.source == source) & (examples.method == method)]
+            for ax, kind, title in zip(row[:2], ("p", "q"), ("agent p (before the cut)", "agent q (after)")):
+                pts = ex[ex.kind == kind]
+                ax.scatter(pts.x, pts.y, s=6, c="tab:blue" if kind == "p" else "tab:orange")
+                ax.set_title(f"{source}: {title}, {len(pts)} trees, own frame")
+            ax = row[2]
+            truth, merged = ex[ex.kind == "truth"], ex[ex.kind == "merged"]
+            ax.scatter(truth.x, truth.y, marker="+", s=25, c="k", lw=0.6, label="reference trees")
+            colours = {"fused": "tab:green", "p": "tab:blue", "q": "tab:orange"}
+            for origin, colour in colours.items():
+                sel = merged[merged.origin == origin]
+                ax.scatter(sel.x, sel.y, marker="s", s=10, facecolors="none", edgecolors=colour,
+                           lw=0.6, label=f"merged: {origin} ({len(sel)})")
+            ax.set_title(f"{source}: {method} merge in p's frame")
+            ax.legend(fontsize=5.5, frameon=False, loc="best")
+            for a in row:
+                a.set_aspect("equal")
+                a.tick_params(labelsize=6)
+        fig.suptitle(f"Victoria Park, cut at pose {cut}", fontsize=8)
+        fig.tight_layout()
+        return _save(fig, out, "victoria_park")
+
+
+def write(sweep: Path, out: Path) -> list[Path]:
+    trials, examples = load_runs(sweep)
+    out.mkdir(parents=True, exist_ok=True)
+    tab = table(trials)
+    tab.to_csv(out / "table.csv", index=False, float_format="%.6g")
+    (out / "table.md").write_text(tab.to_markdown(index=False, floatfmt=".3g") + "\n")
+    return [out / "table.csv", out / "table.md", *figure(examples, out)]
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description="Merge two agents' Victoria Park maps with every matcher.")
+    parser.add_argument("--out", default="results/victoria_park")
+    parser.add_argument("--tables", action="store_true", help="only rebuild table and figure")
+    parser.add_argument("overrides", nargs="*", help="extra Hydra overrides")
+    args = parser.parse_args(argv)
+    if not args.tables:
+        sources = ["reference"] + (["slam"] if importlib.util.find_spec("gtsam") else [])
+        methods = ["paper", "cyclic", "consensus", "groth"]
+        methods += ["astroalign"] if importlib.util.find_spec("astroalign") else []
+        _call(["experiments.run", "-m", "experiment=victoria_park", "mc.progress=false",
+               f"scenario.source={','.join(sources)}", f"matcher.method={','.join(methods)}",
+               f"aggregate_dir={SWEEP / 'aggregate'}", *args.overrides])
+    for path in write(SWEEP, Path(args.out)):
+        print(path)
+
+
+if __name__ == "__main__":
+    main()
