@@ -61,13 +61,13 @@ def figure(examples: pd.DataFrame, out: Path, cut: int = DEFAULT_CUT, method: st
     """Agent maps in their own frames, and the merged map on the reference trees."""
     sources = sorted(examples.source.unique())
     with plt.rc_context(STYLE):
-        fig, axes = plt.subplots(len(sources), 3, figsize=(7.0, 2.6 * len(sources)), squeeze=False)
+        fig, axes = plt.subplots(len(sources), 3, figsize=(8.0, 3.0 * len(sources)), squeeze=False)
         for row, source in zip(axes, sources):
             ex = examples[(examples.cut == cut) & (examples.source == source) & (examples.method == method)]
-            for ax, kind, title in zip(row[:2], ("p", "q"), ("agent p (before the cut)", "agent q (after)")):
+            for ax, kind, title in zip(row[:2], ("p", "q"), ("agent p (before the cut)", "agent q (from the cut)")):
                 pts = ex[ex.kind == kind]
                 ax.scatter(pts.x, pts.y, s=6, c="tab:blue" if kind == "p" else "tab:orange")
-                ax.set_title(f"{source}: {title}, {len(pts)} trees, own frame")
+                ax.set_title(f"{source} maps: {title}\n{len(pts)} trees, in its own frame (m)")
             ax = row[2]
             truth, merged = ex[ex.kind == "truth"], ex[ex.kind == "merged"]
             ax.scatter(truth.x, truth.y, marker="+", s=25, c="k", lw=0.6, label="reference trees")
@@ -76,8 +76,8 @@ def figure(examples: pd.DataFrame, out: Path, cut: int = DEFAULT_CUT, method: st
                 sel = merged[merged.origin == origin]
                 ax.scatter(sel.x, sel.y, marker="s", s=10, facecolors="none", edgecolors=colour,
                            lw=0.6, label=f"merged: {origin} ({len(sel)})")
-            ax.set_title(f"{source}: {method} merge in p's frame")
-            ax.legend(fontsize=5.5, frameon=False, loc="best")
+            ax.set_title(f"{source} maps: {method} merge\nin p's frame (m)")
+            ax.legend(fontsize=5.5, frameon=False, loc="upper left", bbox_to_anchor=(1.0, 1.0))
             for a in row:
                 a.set_aspect("equal")
                 a.tick_params(labelsize=6)
