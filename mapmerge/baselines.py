@@ -22,11 +22,11 @@ match"; a wrong transform is kept and shows up in the errors.
 from __future__ import annotations
 
 import numpy as np
-from scipy.stats import chi2
 
 from .matching import correspondences
 from .merging import finish
-from .statistic import _align, paired_transforms, rotation
+from .statistic import paired_transforms
+from .verification import reject_outliers
 from .triangles import _triangulate
 
 #: Groth's ε, the position tolerance of a vertex, in units of σ.
@@ -71,7 +71,7 @@ def groth_merge(P, Q, sigma):
     _, _, cost = paired_transforms(P[vp], Q[vq])
     scores = -cost / (2 * sigma**2)
     pairs, n_conflicts = _vote(vp, vq)
-    pairs = _reject_outliers(P, Q, pairs, sigma)
+    pairs = reject_outliers(P, Q, pairs, sigma, GROTH_GATE_P)
     to_q = np.full(P.shape[0], -1)
     to_q[pairs[:, 0]] = pairs[:, 1]
     declared = np.all(to_q[vp] == vq, axis=1)
@@ -88,19 +88,6 @@ def _vote(vp, vq):
     keys, votes = np.unique(vp.ravel() * n + vq.ravel(), return_counts=True)
     v = votes[np.searchsorted(keys, pairs[:, 0] * n + pairs[:, 1])]
     return pairs[v >= 2], conflicts
-
-
-def _reject_outliers(P, Q, pairs, sigma):
-    """Groth's iterative fit: drop the worst pair outside the gate and refit."""
-    gate = 4 * sigma**2 * chi2.isf(GROTH_GATE_P, 2)  # residual q - (R p + t): variance 2σ² per coordinate
-    while pairs.shape[0] >= 3:
-        al = _align(P[pairs[:, 0]], Q[pairs[:, 1]], sigma)
-        resid = np.sum((Q[pairs[:, 1]] - P[pairs[:, 0]] @ rotation(al.theta).T - al.t) ** 2, axis=1)
-        worst = int(np.argmax(resid))
-        if resid[worst] <= gate:
-            break
-        pairs = np.delete(pairs, worst, axis=0)
-    return pairs
 
 
 def astroalign_merge(P, Q, sigma):

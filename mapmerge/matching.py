@@ -15,6 +15,9 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import min_weight_full_bipartite_matching
+from scipy.spatial import cKDTree
 from scipy.stats import chi2
 
 OBJECTIVES = ("lr", "loglr")
@@ -92,6 +95,78 @@ def assign(log_lr: np.ndarray, objective: str = "lr") -> np.ndarray:
     weight = np.exp(log_lr) if objective == "lr" else log_lr
     rows, cols = linear_sum_assignment(weight, maximize=True)
     return np.stack([rows, cols], axis=1).astype(np.intp)
+
+
+def side_features(coords: np.ndarray) -> np.ndarray:
+    """Sorted side lengths (T, 3): invariant to rotation, translation and vertex order."""
+    sides = np.linalg.norm(coords - np.roll(coords, -1, axis=1), axis=2)
+    return np.sort(sides, axis=1)
+
+
+def gate_radius(sigma: float, log_tau: float) -> float:
+    """Side-feature distance that no pair with log Λ >= log τ can exceed.
+
+    After the optimal alignment each vertex leaves a residual r_v with
+    Σ‖r_v‖² = 2J*, and each paired side differs by at most ‖r_a‖ + ‖r_b‖,
+    so the side vectors differ by at most √(8 J*); sorting both can only
+    shrink that. A declared pair has J* <= -2σ² log τ, hence the radius
+    ``4σ √(-log τ)``: the gate loses no pair the threshold would keep.
+    """
+    return 4.0 * sigma * np.sqrt(max(-log_tau, 0.0))
+
+
+def candidate_pairs(coords_p, coords_q, sigma: float, log_tau: float, k: int):
+    """Triangle pairs within the side-feature gate, at most ``k`` per p triangle.
+
+    Returns
+    -------
+    (C, 2) int ndarray
+        Candidate (p triangle, q triangle) pairs, sorted by (p, q). The cap
+        ``k`` keeps the nearest in feature space; below it the gate is
+        complete (``gate_radius``).
+    """
+    tree = cKDTree(side_features(coords_q))
+    k = min(k, len(coords_q))
+    dist, idx = tree.query(side_features(coords_p), k=k, distance_upper_bound=gate_radius(sigma, log_tau))
+    dist, idx = dist.reshape(len(coords_p), k), idx.reshape(len(coords_p), k)
+    rows, slot = np.nonzero(np.isfinite(dist))
+    pairs = np.stack([rows, idx[rows, slot]], axis=1).astype(np.intp)
+    return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+
+
+def assign_sparse(log_lr: np.ndarray, pairs: np.ndarray, shape, objective: str = "lr") -> np.ndarray:
+    """The LP (14) restricted to candidate pairs, every p triangle free to stay unpaired.
+
+    Each p triangle i gets a private dummy partner worth what an excluded
+    pair is worth at most (Λ = 0 for ``"lr"``; the smallest candidate
+    log Λ for ``"loglr"``), so the full matching of the rows on the sparse
+    graph (``min_weight_full_bipartite_matching``) is the LP's optimum over
+    the candidates.
+
+    Returns
+    -------
+    (M, 2) int ndarray
+        Tentative pairs among ``pairs``, sorted by p index.
+    """
+    if objective not in OBJECTIVES:
+        raise ValueError(f"objective must be one of {OBJECTIVES}, got {objective!r}")
+    n_p, n_q = shape
+    if pairs.shape[0] == 0:
+        return np.empty((0, 2), dtype=np.intp)
+    if objective == "lr":
+        gain, dummy = np.exp(log_lr), 0.0
+    else:
+        gain, dummy = log_lr, float(log_lr.min())
+    # Every row is matched exactly once, so a common offset keeps all
+    # weights non-zero (zero means "no edge") without changing the optimum.
+    offset = 1.0 - min(dummy, float(gain.min()))
+    rows = np.r_[pairs[:, 0], np.arange(n_p)]
+    cols = np.r_[pairs[:, 1], n_q + np.arange(n_p)]
+    weights = np.r_[gain + offset, np.full(n_p, dummy + offset)]
+    graph = coo_matrix((weights, (rows, cols)), shape=(n_p, n_q + n_p)).tocsr()
+    r, c = min_weight_full_bipartite_matching(graph, maximize=True)
+    real = c < n_q
+    return np.stack([r[real], c[real]], axis=1).astype(np.intp)
 
 
 def correspondences(vertices_p, vertices_q, log_lr):

@@ -15,8 +15,10 @@ import numpy as np
 
 from ._validation import check_points, check_sigma
 from .combining import CombinedMap, combine_maps, p_only_map
-from .matching import OBJECTIVES, assign, correspondences, resolve_log_tau
-from .statistic import Alignment, ccw_order, pairwise_cost
+from .matching import (
+    OBJECTIVES, assign, assign_sparse, candidate_pairs, correspondences, resolve_log_tau,
+)
+from .statistic import Alignment, ccw_order, paired_cost, pairwise_cost
 from .triangles import Triangles, _triangulate
 
 #: Matcher variants. "paper": the seed paper (Groth order, LP, τ, eq. 15).
@@ -33,6 +35,13 @@ MIN_MATCHED_LANDMARKS = 3
 
 #: Default threshold: reject 1 % of true, order-consistent triangle pairs.
 DEFAULT_TAU = "chi2:0.01"
+
+#: Above this many triangle pairs (Tp·Tq, about 250 landmarks per map)
+#: merge_maps switches to the sparse, gated path.
+DENSE_MAX_PAIRS = 250_000
+#: Candidate q triangles kept per p triangle on the sparse path (nearest in
+#: side-length space within the gate).
+SPARSE_NEIGHBOURS = 8
 
 
 @dataclass(frozen=True)
@@ -143,7 +152,10 @@ def merge_maps(P, Q, sigma, tau=DEFAULT_TAU, method="paper", objective="lr") -> 
         from .baselines import BASELINES
 
         return BASELINES[method](P, Q, sigma)
-    match = match_triangles(P, Q, sigma, objective, cyclic=method != "paper")
+    # On the sparse path the consensus step needs every gated candidate, not
+    # only the LP's choice: at scale chance congruences outbid most true pairs.
+    match = match_triangles(P, Q, sigma, objective, cyclic=method != "paper", log_tau=log_tau,
+                            solve_lp=method != "consensus")
     return merge_at(P, Q, sigma, match, log_tau, method)
 
 
@@ -166,25 +178,59 @@ class TriangleMatch:
 
 
 def match_triangles(
-    P: np.ndarray, Q: np.ndarray, sigma: float, objective: str, cyclic: bool = False
+    P: np.ndarray, Q: np.ndarray, sigma: float, objective: str, cyclic: bool = False,
+    log_tau: float | None = None, sparse: bool | None = None, solve_lp: bool = True,
 ) -> TriangleMatch:
-    """Triangulate, score every pair and solve the LP (inputs already valid).
+    """Triangulate, score the triangle pairs and solve the LP (inputs already valid).
 
     The τ-independent part of ``merge_maps``: callers comparing several
     thresholds on one map pair run it once and ``merge_at`` per τ.
+
+    Dense path: every pair is scored (Tp x Tq matrix) and the LP is solved
+    exactly. Sparse path (``sparse=True``, or automatically when
+    Tp·Tq > ``DENSE_MAX_PAIRS`` and a finite ``log_tau`` is given): only
+    pairs within the side-length gate of ``log_tau`` (``gate_radius``, at
+    most ``SPARSE_NEIGHBOURS`` per p triangle) are scored, those passing
+    log τ are kept, and the LP is solved on that sparse graph, so memory
+    and time grow like n log n. It declares the same pairs as the dense
+    path unless the neighbour cap or a pair below τ changes the LP's choice
+    (tested equal on maps where both run). With ``solve_lp=False`` the
+    sparse path returns every candidate passing log τ as tentative pairs.
     """
     tri_p, tri_q = _triangulate(P), _triangulate(Q)
     vp, vq = tri_p.vertices, tri_q.vertices
     if cyclic:
         vp = np.take_along_axis(vp, ccw_order(tri_p.coords), axis=1)
         vq = np.take_along_axis(vq, ccw_order(tri_q.coords), axis=1)
-    cost, shift = pairwise_cost(P[vp], Q[vq], cyclic)
-    log_lr = -cost / (2.0 * sigma**2)
-    triangle_pairs = assign(log_lr, objective)
+    finite_tau = log_tau is not None and np.isfinite(log_tau)
+    if sparse is None:
+        sparse = finite_tau and len(vp) * len(vq) > DENSE_MAX_PAIRS
+    if sparse and not finite_tau:
+        raise ValueError("the sparse path needs a finite threshold tau")
+    if sparse:
+        cand = candidate_pairs(P[vp], Q[vq], sigma, log_tau, SPARSE_NEIGHBOURS)
+        cost, shift = paired_cost(P[vp[cand[:, 0]]], Q[vq[cand[:, 1]]], cyclic)
+        # Pairs below τ can never be declared; dropping them leaves the LP a
+        # much smaller graph (they only compete with Λ < τ each).
+        keep = -cost / (2.0 * sigma**2) >= log_tau
+        cand, cost, shift = cand[keep], cost[keep], shift[keep]
+        if solve_lp:
+            chosen = assign_sparse(-cost / (2.0 * sigma**2), cand, (len(vp), len(vq)), objective)
+        else:
+            chosen = cand
+        # Map the chosen pairs back to their candidate rows (both sorted by p index).
+        at = np.searchsorted(cand[:, 0] * len(vq) + cand[:, 1], chosen[:, 0] * len(vq) + chosen[:, 1])
+        triangle_pairs, scores, shifts = chosen, -cost[at] / (2.0 * sigma**2), shift[at]
+    else:
+        cost, shift = pairwise_cost(P[vp], Q[vq], cyclic)
+        log_lr = -cost / (2.0 * sigma**2)
+        triangle_pairs = assign(log_lr, objective)
+        i, j = triangle_pairs[:, 0], triangle_pairs[:, 1]
+        scores, shifts = log_lr[i, j], shift[i, j]
     i, j = triangle_pairs[:, 0], triangle_pairs[:, 1]
-    roll = (np.arange(3)[None, :] + shift[i, j][:, None]) % 3
+    roll = (np.arange(3)[None, :] + shifts[:, None]) % 3
     q_vertices = np.take_along_axis(vq[j], roll, axis=1)
-    return TriangleMatch(tri_p, tri_q, triangle_pairs, log_lr[i, j], vp[i], q_vertices)
+    return TriangleMatch(tri_p, tri_q, triangle_pairs, scores, vp[i], q_vertices)
 
 
 def merge_at(

@@ -135,18 +135,32 @@ def paired_transforms(coords_p, coords_q):
     cq = np.asarray(coords_q, dtype=float)
     p_bar = cp.mean(axis=1)
     q_bar = cq.mean(axis=1)
-    pc = cp - p_bar[:, None, :]
-    qc = cq - q_bar[:, None, :]
-    alpha = -np.einsum("mvk,mvk->m", qc, pc)
-    beta = -(pc[..., 0] * qc[..., 1] - pc[..., 1] * qc[..., 0]).sum(axis=1)
+    px, py = (cp - p_bar[:, None, :]).transpose(2, 0, 1)
+    qx, qy = (cq - q_bar[:, None, :]).transpose(2, 0, 1)
+    alpha = -(qx * px + qy * py).sum(axis=1)
+    beta = -(px * qy - py * qx).sum(axis=1)
     theta = wrap_angle(np.arctan2(-beta, -alpha))
     c, s = np.cos(theta), np.sin(theta)
-    rot = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)  # (M, 2, 2)
-    t = q_bar - np.einsum("mij,mj->mi", rot, p_bar)
-    residual = np.einsum("mij,mvj->mvi", rot, pc) - qc
+    t = q_bar - np.stack([c * p_bar[:, 0] - s * p_bar[:, 1], s * p_bar[:, 0] + c * p_bar[:, 1]], axis=1)
+    rx = c[:, None] * px - s[:, None] * py - qx
+    ry = s[:, None] * px + c[:, None] * py - qy
     # Optimal µ is the midpoint, so each vertex leaves half its squared gap.
-    cost = 0.5 * (residual**2).sum(axis=(1, 2))
+    cost = 0.5 * (rx**2 + ry**2).sum(axis=1)
     return theta, t, cost
+
+
+def paired_cost(cp: np.ndarray, cq: np.ndarray, cyclic: bool = False):
+    """J* of row-paired triangles, and the best cyclic shift of q (see pairwise_cost)."""
+    best, shift = None, None
+    for s in range(3 if cyclic else 1):
+        _, _, cost = paired_transforms(cp, np.roll(cq, -s, axis=1))
+        if best is None:
+            best, shift = cost, np.zeros(cost.shape, dtype=np.int8)
+        else:
+            better = cost < best
+            best = np.where(better, cost, best)
+            shift[better] = s
+    return best, shift
 
 
 @dataclass(frozen=True)

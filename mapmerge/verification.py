@@ -33,7 +33,7 @@ from scipy.special import gammaln
 from scipy.stats import chi2
 
 from .matching import correspondences
-from .statistic import _J, _align, mapped_covariance, paired_transforms, rotation
+from .statistic import _J, _align, mapped_covariance, paired_transforms, rotation, wrap_angle
 
 #: Tail probability of every χ² gate (a true pair / landmark is rejected
 #: with this probability).
@@ -41,8 +41,15 @@ GATE_P = 1e-3
 #: Fewest transform-consistent triangle pairs accepted as a match: a single
 #: chance congruence is common, two agreeing on one transform are not.
 MIN_CONSENSUS = 2
-#: Hypotheses scored against all candidates (the best-scoring pairs).
+#: Hypotheses tried (the best-scoring candidate pairs).
 MAX_HYPOTHESES = 256
+#: Candidates against which the hypotheses are first counted; with more
+#: candidates than this, the pool is chosen by a Hough vote (``_hough_pool``).
+MAX_POOL = 2048
+#: Width of a θ bin of the Hough vote, in typical rotation uncertainties.
+HOUGH_WIDTH = 3.0
+#: Each round of ``_grow`` admits pairs this many times farther away.
+GROW_FACTOR = 3.0
 #: A match is accepted when its number of false alarms (``match_nfa``: the
 #: expected number of equally good chance matches among the hypotheses
 #: tried) is at most this. Unrelated maps therefore give "no match".
@@ -72,37 +79,124 @@ def _consensus(vp, vq, P, Q, scores, sigma):
     """
     cp, cq = P[vp], Q[vq]
     gate = chi2.isf(GATE_P, 6)
-    hyp = np.argsort(-scores, kind="stable")[:MAX_HYPOTHESES]
+    # Hypotheses are counted on a pool only: large maps have far more
+    # candidates than any transform needs, and the landmark association that
+    # follows brings every landmark back in.
+    large = len(scores) > MAX_POOL
+    pool = _hough_pool(cp, cq, scores, sigma) if large else np.argsort(-scores, kind="stable")
+    hyp = pool[:MAX_HYPOTHESES]
     theta, t, _ = paired_transforms(cp[hyp], cq[hyp])
     centre = cp[hyp].mean(axis=1)
     spread = np.sum((cp[hyp] - centre[:, None]) ** 2, axis=(1, 2))  # Σ‖p̃‖²
-    lever2 = np.sum((cp[None] - centre[:, None, None, :]) ** 2, axis=-1)  # (H, M, 3)
+    lever2 = np.sum((cp[pool][None] - centre[:, None, None, :]) ** 2, axis=-1)  # (H, pool, 3)
     # Per coordinate: both maps' noise, t at the centroid (2σ²/3) and the
     # rotation error 2σ²/Σ‖p̃‖² times the squared lever arm.
     var = 2 * sigma**2 * (1 + 1 / 3 + lever2 / spread[:, None, None])
-    inliers = _gate_d2(cp, cq, theta, t, var) <= gate
+    inliers = _gate_d2(cp[pool], cq[pool], theta, t, var) <= gate
     count = inliers.sum(axis=1)
+    centres = cp[pool].mean(axis=1)
     best, best_key = np.empty(0, dtype=np.intp), (0, 0.0)
     for h in np.lexsort((-scores[hyp], -count))[:REFINE]:
         if count[h] < MIN_CONSENSUS:
             break
-        pairs, _ = correspondences(vp[inliers[h]], vq[inliers[h]], scores[inliers[h]])
-        if pairs.shape[0] < 3:
-            continue
-        al = _align(P[pairs[:, 0]], Q[pairs[:, 1]], sigma)
-        var_fit = 2 * sigma**2 + _prediction_var(cp, al)
-        members = np.flatnonzero(_gate_d2(cp, cq, al.theta, al.t, var_fit) <= gate)
+        if large:
+            members = _grow(vp, vq, P, Q, scores, sigma, pool, centres, hyp[h], gate)
+        else:
+            members = pool[inliers[h]]
+            pairs, _ = correspondences(vp[members], vq[members], scores[members])
+            if pairs.shape[0] < 3:
+                continue
+            al = _align(P[pairs[:, 0]], Q[pairs[:, 1]], sigma)
+            var_fit = 2 * sigma**2 + _prediction_var(cp[pool], al)
+            members = pool[_gate_d2(cp[pool], cq[pool], al.theta, al.t, var_fit) <= gate]
         key = (members.size, float(scores[members].sum()))
         if key > best_key:
             best, best_key = members, key
     return best
 
 
+def _grow(vp, vq, P, Q, scores, sigma, pool, centres, seed, gate):
+    """Grow a transform-consistent group outwards from one hypothesis.
+
+    A single triangle's rotation is too uncertain to judge far-away pairs
+    (its gate must be loose there, and loose gates let chance pairs in), so
+    pairs are admitted ring by ring, ``GROW_FACTOR`` times farther each
+    round, each ring gated under the refit of everything admitted so far.
+    """
+    dist = np.linalg.norm(centres - P[vp[seed]].mean(axis=0), axis=1)
+    side = np.sqrt(np.sum((P[vp[seed]] - P[vp[seed]].mean(axis=0)) ** 2) / 2)
+    al = _align(P[vp[seed]], Q[vq[seed]], sigma)
+    radius, members = GROW_FACTOR * side, np.array([seed])
+    while True:
+        var = 2 * sigma**2 + _prediction_var(P[vp[pool]], al)
+        within = dist <= radius
+        members = pool[within & (_gate_d2(P[vp[pool]], Q[vq[pool]], al.theta, al.t, var) <= gate)]
+        pairs, _ = correspondences(vp[members], vq[members], scores[members])
+        if pairs.shape[0] >= 3:
+            al = _align(P[pairs[:, 0]], Q[pairs[:, 1]], sigma)
+        if within.all():
+            return members
+        radius *= GROW_FACTOR
+
+
+def _hough_pool(cp, cq, scores, sigma):
+    """The candidates around the densest transform: a Hough vote in (θ, t).
+
+    With many more candidates than a transform needs (large maps), most are
+    chance congruences whose (θ, t) scatter over all rotations and the whole
+    map, while true pairs pile up at one (θ, t). θ is voted in bins a few
+    times the rotation uncertainty of a typical triangle wide, then t,
+    evaluated at the winning θ, in cells as wide as that θ window spreads a
+    true pair's t. Returns up to ``MAX_POOL`` candidates of the winning
+    cell and its neighbours, best scores first.
+    """
+    theta, _, _ = paired_transforms(cp, cq)
+    p_bar, q_bar = cp.mean(axis=1), cq.mean(axis=1)
+    spread = np.median(np.sum((cp - p_bar[:, None]) ** 2, axis=(1, 2)))
+    side = np.sqrt(spread / 2)  # about a typical side length
+    sigma_theta = np.sqrt(2 * sigma**2 / spread)  # rotation error of a typical triangle fit
+    n_bins = int(np.clip(2 * np.pi / (HOUGH_WIDTH * sigma_theta), 8, 4096))
+    counts, edges = np.histogram(theta, bins=n_bins, range=(-np.pi, np.pi))
+    window = (counts + np.roll(counts, 1) + np.roll(counts, -1)).argmax()  # circular, 3 bins
+    theta_hat, half = 0.5 * (edges[window] + edges[window + 1]), 1.5 * (edges[1] - edges[0])
+    idx = np.flatnonzero(np.abs(wrap_angle(theta - theta_hat)) <= half)
+    # t is evaluated at θ̂ about the map centre: a true pair's θ may be off
+    # θ̂ by up to the half window, which moves its t by that angle times its
+    # distance from the centre, so the t cells are that wide.
+    centre = cp.reshape(-1, 2).mean(axis=0)
+    reach = np.sqrt(np.mean(np.sum((p_bar[idx] - centre) ** 2, axis=1)))
+    t = q_bar[idx] - (p_bar[idx] - centre) @ rotation(theta_hat).T
+    cell = np.floor(t / max(side, half * reach)).astype(np.int64)
+    keys, inverse, votes = np.unique(cell, axis=0, return_inverse=True, return_counts=True)
+    # The winning t cell and its 8 neighbours.
+    best = keys[np.argmax(votes)]
+    idx = idx[np.all(np.abs(cell - best) <= 1, axis=1)]
+    return idx[np.argsort(-scores[idx], kind="stable")][:MAX_POOL]
+
+
 def _prediction_var(points, alignment):
-    """Mean per-coordinate variance of R(θ) x + t from the fit's covariance."""
-    R = rotation(alignment.theta)
-    G = np.concatenate([(points @ (R @ _J).T)[..., None], np.broadcast_to(np.eye(2), points.shape + (2,))], -1)
-    return 0.5 * np.einsum("...ij,jk,...ik->...", G, alignment.cov, G)
+    """Mean per-coordinate variance of R(θ) x + t from the fit's covariance.
+
+    With G = [R J x, I] the Jacobian in (θ, t), ½ tr(G Σ Gᵀ) =
+    ½ (‖x‖² Σ_θθ + 2 (R J x)·Σ_θt + tr Σ_tt).
+    """
+    cov = alignment.cov
+    rjx = points @ (rotation(alignment.theta) @ _J).T
+    return 0.5 * (np.sum(points**2, axis=-1) * cov[0, 0] + 2 * rjx @ cov[0, 1:] + cov[1, 1] + cov[2, 2])
+
+
+def reject_outliers(P, Q, pairs, sigma, gate_p=GATE_P):
+    """Iterative fit: drop the worst pair outside the χ²₂ gate and refit (Groth's rule)."""
+    gate = chi2.isf(gate_p, 2)
+    while pairs.shape[0] >= 3:
+        al = _align(P[pairs[:, 0]], Q[pairs[:, 1]], sigma)
+        var = 2 * sigma**2 + _prediction_var(P[pairs[:, 0]], al)
+        resid = np.sum((Q[pairs[:, 1]] - P[pairs[:, 0]] @ rotation(al.theta).T - al.t) ** 2, axis=1) / var
+        worst = int(np.argmax(resid))
+        if resid[worst] <= gate:
+            break
+        pairs = np.delete(pairs, worst, axis=0)
+    return pairs
 
 
 def associate(P, Q, alignment, sigma):
@@ -238,6 +332,7 @@ def consensus_merge(P, Q, sigma, match, log_tau):
         group = _consensus(vp, vq, P, Q, scores, sigma)
         if group.size >= MIN_CONSENSUS:
             pairs, n_conflicts = correspondences(vp[group], vq[group], scores[group])
+            pairs = reject_outliers(P, Q, pairs, sigma)
     if pairs.shape[0] < 3:
         none = np.zeros(match.triangle_pairs.shape[0], dtype=bool)
         return finish(P, Q, sigma, np.empty((0, 2), dtype=np.intp), n_conflicts,
