@@ -190,12 +190,13 @@ def match_triangles(
     exactly. Sparse path (``sparse=True``, or automatically when
     Tp·Tq > ``DENSE_MAX_PAIRS`` and a finite ``log_tau`` is given): only
     pairs within the side-length gate of ``log_tau`` (``gate_radius``, at
-    most ``SPARSE_NEIGHBOURS`` per p triangle) are scored, those passing
-    log τ are kept, and the LP is solved on that sparse graph, so memory
-    and time grow like n log n. It declares the same pairs as the dense
-    path unless the neighbour cap or a pair below τ changes the LP's choice
-    (tested equal on maps where both run). With ``solve_lp=False`` the
-    sparse path returns every candidate passing log τ as tentative pairs.
+    most ``SPARSE_NEIGHBOURS`` per p triangle) are scored and the LP is
+    solved on that sparse graph, so memory grows like n and time like
+    n log n. It declares the same pairs as the dense path unless the
+    neighbour cap, or a pair outside the gate (Λ < τ) competing in the LP,
+    changes the LP's choice (tested equal on maps where both run). With
+    ``solve_lp=False`` the sparse path returns every candidate passing log τ
+    as tentative pairs.
     """
     tri_p, tri_q = _triangulate(P), _triangulate(Q)
     vp, vq = tri_p.vertices, tri_q.vertices
@@ -210,13 +211,11 @@ def match_triangles(
     if sparse:
         cand = candidate_pairs(P[vp], Q[vq], sigma, log_tau, SPARSE_NEIGHBOURS)
         cost, shift = paired_cost(P[vp[cand[:, 0]]], Q[vq[cand[:, 1]]], cyclic)
-        # Pairs below τ can never be declared; dropping them leaves the LP a
-        # much smaller graph (they only compete with Λ < τ each).
-        keep = -cost / (2.0 * sigma**2) >= log_tau
-        cand, cost, shift = cand[keep], cost[keep], shift[keep]
         if solve_lp:
             chosen = assign_sparse(-cost / (2.0 * sigma**2), cand, (len(vp), len(vq)), objective)
-        else:
+        else:  # every candidate that can be declared
+            keep = -cost / (2.0 * sigma**2) >= log_tau
+            cand, cost, shift = cand[keep], cost[keep], shift[keep]
             chosen = cand
         # Map the chosen pairs back to their candidate rows (both sorted by p index).
         at = np.searchsorted(cand[:, 0] * len(vq) + cand[:, 1], chosen[:, 0] * len(vq) + chosen[:, 1])

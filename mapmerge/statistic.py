@@ -151,16 +151,21 @@ def paired_transforms(coords_p, coords_q):
 
 def paired_cost(cp: np.ndarray, cq: np.ndarray, cyclic: bool = False):
     """J* of row-paired triangles, and the best cyclic shift of q (see pairwise_cost)."""
+    pc = cp - cp.mean(axis=1, keepdims=True)
+    qc = cq - cq.mean(axis=1, keepdims=True)
+    px, py = pc[..., 0], pc[..., 1]
+    gamma = 0.5 * (np.sum(pc**2, axis=(1, 2)) + np.sum(qc**2, axis=(1, 2)))
     best, shift = None, None
     for s in range(3 if cyclic else 1):
-        _, _, cost = paired_transforms(cp, np.roll(cq, -s, axis=1))
+        qx, qy = np.roll(qc[..., 0], -s, axis=1), np.roll(qc[..., 1], -s, axis=1)
+        r = np.hypot(np.sum(px * qx + py * qy, axis=1), np.sum(px * qy - py * qx, axis=1))
         if best is None:
-            best, shift = cost, np.zeros(cost.shape, dtype=np.int8)
+            best, shift = r, np.zeros(r.shape, dtype=np.int8)
         else:
-            better = cost < best
-            best = np.where(better, cost, best)
+            better = r > best
+            best = np.where(better, r, best)
             shift[better] = s
-    return best, shift
+    return np.maximum(gamma - best, 0.0), shift
 
 
 @dataclass(frozen=True)
