@@ -144,6 +144,14 @@ def aggregate(dirs, out) -> dict[str, Path]:
     return paths
 
 
+def save_table(table: pd.DataFrame, stem: Path) -> list[Path]:
+    """Write ``stem.csv`` and ``stem.md`` (a Markdown table) side by side."""
+    csv, md = stem.with_suffix(".csv"), stem.with_suffix(".md")
+    table.to_csv(csv, index=False, float_format="%.6g")
+    md.write_text(table.to_markdown(index=False, floatfmt=".3g") + "\n")
+    return [csv, md]
+
+
 def markdown_table(table: pd.DataFrame) -> str:
     cols = ["n_landmarks", "overlap", "snr_db", "unrelated", "method", "objective", "tau", "n_trials", "tp", "fp", "md",
             "precision", "md_rate", "recall_common", "success_rate", "median_rmse_over_sigma"]

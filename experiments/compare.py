@@ -26,6 +26,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import pandas as pd  # noqa: E402
 
+from .aggregate import save_table  # noqa: E402
 from .figures import STYLE, _save  # noqa: E402
 from .paper import _call  # noqa: E402
 
@@ -69,9 +70,7 @@ def write_tables(out: Path) -> list[Path]:
     if not tables:
         raise FileNotFoundError(f"no */table.csv below {out}: run without --tables first")
     comp = comparison_table(pd.concat([pd.read_csv(t) for t in tables], ignore_index=True))
-    comp.to_csv(out / "compare.csv", index=False, float_format="%.6g")
-    (out / "compare.md").write_text(comp.to_markdown(index=False, floatfmt=".3g") + "\n")
-    return [out / "compare.csv", out / "compare.md", *success_figure(comp, out)]
+    return [*save_table(comp, out / "compare"), *success_figure(comp, out)]
 
 
 def main(argv=None) -> None:

@@ -26,7 +26,7 @@ import pandas as pd  # noqa: E402
 
 from mapmerge.datasets import DEFAULT_CUT  # noqa: E402
 
-from .aggregate import find_runs  # noqa: E402
+from .aggregate import find_runs, save_table  # noqa: E402
 from .figures import STYLE, _save  # noqa: E402
 from .paper import _call  # noqa: E402
 
@@ -89,10 +89,7 @@ def figure(examples: pd.DataFrame, out: Path, cut: int = DEFAULT_CUT, method: st
 def write(sweep: Path, out: Path) -> list[Path]:
     trials, examples = load_runs(sweep)
     out.mkdir(parents=True, exist_ok=True)
-    tab = table(trials)
-    tab.to_csv(out / "table.csv", index=False, float_format="%.6g")
-    (out / "table.md").write_text(tab.to_markdown(index=False, floatfmt=".3g") + "\n")
-    return [out / "table.csv", out / "table.md", *figure(examples, out)]
+    return [*save_table(table(trials), out / "table"), *figure(examples, out)]
 
 
 def main(argv=None) -> None:

@@ -97,15 +97,28 @@ def pairwise_cost(cp: np.ndarray, cq: np.ndarray, cyclic: bool = False):
         The cyclic shift ``s`` of q's vertices that attains it (q vertex
         ``(v + s) % 3`` pairs with p vertex ``v``); all zero unless ``cyclic``.
     """
+    return _min_cost(cp, cq, cyclic, pairwise=True)
+
+
+def _min_cost(cp, cq, cyclic: bool, pairwise: bool):
+    """J* = γ - max over the allowed vertex shifts of √(α² + β²).
+
+    ``pairwise``: every p triangle against every q triangle (matrix
+    products); otherwise row m of ``cp`` against row m of ``cq``.
+    """
     pc = cp - cp.mean(axis=1, keepdims=True)
     qc = cq - cq.mean(axis=1, keepdims=True)
     px, py = pc[..., 0], pc[..., 1]
-    gamma = 0.5 * ((pc**2).sum(axis=(1, 2))[:, None] + (qc**2).sum(axis=(1, 2))[None, :])
+    sp, sq = (pc**2).sum(axis=(1, 2)), (qc**2).sum(axis=(1, 2))
+    gamma = 0.5 * (sp[:, None] + sq[None, :] if pairwise else sp + sq)
     best, shift = None, None
     for s in range(3 if cyclic else 1):
         qs = np.roll(qc, -s, axis=1)
         qx, qy = qs[..., 0], qs[..., 1]
-        r = np.hypot(px @ qx.T + py @ qy.T, px @ qy.T - py @ qx.T)  # √(α² + β²)
+        if pairwise:
+            r = np.hypot(px @ qx.T + py @ qy.T, px @ qy.T - py @ qx.T)  # √(α² + β²)
+        else:
+            r = np.hypot(np.sum(px * qx + py * qy, axis=1), np.sum(px * qy - py * qx, axis=1))
         if best is None:
             best, shift = r, np.zeros(r.shape, dtype=np.int8)
         else:
@@ -151,21 +164,7 @@ def paired_transforms(coords_p, coords_q):
 
 def paired_cost(cp: np.ndarray, cq: np.ndarray, cyclic: bool = False):
     """J* of row-paired triangles, and the best cyclic shift of q (see pairwise_cost)."""
-    pc = cp - cp.mean(axis=1, keepdims=True)
-    qc = cq - cq.mean(axis=1, keepdims=True)
-    px, py = pc[..., 0], pc[..., 1]
-    gamma = 0.5 * (np.sum(pc**2, axis=(1, 2)) + np.sum(qc**2, axis=(1, 2)))
-    best, shift = None, None
-    for s in range(3 if cyclic else 1):
-        qx, qy = np.roll(qc[..., 0], -s, axis=1), np.roll(qc[..., 1], -s, axis=1)
-        r = np.hypot(np.sum(px * qx + py * qy, axis=1), np.sum(px * qy - py * qx, axis=1))
-        if best is None:
-            best, shift = r, np.zeros(r.shape, dtype=np.int8)
-        else:
-            better = r > best
-            best = np.where(better, r, best)
-            shift[better] = s
-    return np.maximum(gamma - best, 0.0), shift
+    return _min_cost(cp, cq, cyclic, pairwise=False)
 
 
 @dataclass(frozen=True)
