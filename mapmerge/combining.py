@@ -10,6 +10,7 @@ and every row records where it came from.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,16 +30,31 @@ class CombinedMap:
         ``"fused"``, ``"p"`` or ``"q"``.
     index_p, index_q : (N,) int ndarray
         Source landmark index in map p / map q, -1 where there is none.
+    sigma : float
+    alignment : Alignment or None
+        The fit behind the fused and mapped rows (None: map p alone).
     cov : (N, 2, 2) ndarray
-        Covariance of each row: µ* from the n-point fit, σ² I for p-only
-        rows, σ² I plus the transform's uncertainty for mapped q-only rows.
+        Covariance of each row (computed on first use): µ* from the n-point
+        fit, σ² I for p-only rows, σ² I plus the transform's uncertainty for
+        mapped q-only rows.
     """
 
     points: np.ndarray
     origin: np.ndarray
     index_p: np.ndarray
     index_q: np.ndarray
-    cov: np.ndarray
+    sigma: float
+    alignment: Alignment | None
+
+    @functools.cached_property
+    def cov(self) -> np.ndarray:
+        cov = np.broadcast_to(self.sigma**2 * np.eye(2), (len(self.points), 2, 2)).copy()
+        if self.alignment is not None:
+            fused, only_q = self.origin == "fused", self.origin == "q"
+            cov[fused] = self.alignment.mu_cov
+            cov[only_q] = mapped_covariance(self.points[only_q], self.alignment.theta,
+                                            self.alignment.cov, self.sigma)
+        return cov
 
 
 def combine_maps(P: np.ndarray, Q: np.ndarray, pairs: np.ndarray, sigma: float):
@@ -68,11 +84,8 @@ def combine_maps(P: np.ndarray, Q: np.ndarray, pairs: np.ndarray, sigma: float):
         origin=np.array(["fused"] * k + ["p"] * n_p + ["q"] * n_q, dtype=object),
         index_p=np.concatenate([pairs[:, 0], only_p, np.full(n_q, -1)]).astype(np.intp),
         index_q=np.concatenate([pairs[:, 1], np.full(n_p, -1), only_q]).astype(np.intp),
-        cov=np.concatenate([
-            alignment.mu_cov,
-            np.broadcast_to(sigma**2 * np.eye(2), (n_p, 2, 2)),
-            mapped_covariance(q_in_p, alignment.theta, alignment.cov, sigma),
-        ]),
+        sigma=sigma,
+        alignment=alignment,
     )
     return alignment, combined
 
@@ -85,5 +98,6 @@ def p_only_map(P: np.ndarray, sigma: float) -> CombinedMap:
         origin=np.array(["p"] * n, dtype=object),
         index_p=np.arange(n, dtype=np.intp),
         index_q=np.full(n, -1, dtype=np.intp),
-        cov=np.broadcast_to(sigma**2 * np.eye(2), (n, 2, 2)).copy(),
+        sigma=sigma,
+        alignment=None,
     )

@@ -13,6 +13,8 @@ which the harness measures.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 from scipy.sparse import coo_matrix
@@ -26,6 +28,7 @@ OBJECTIVES = ("lr", "loglr")
 TRIANGLE_DOF = 3
 
 
+@functools.lru_cache(maxsize=256)
 def log_tau_from_chi2(p_miss: float, dof: int = TRIANGLE_DOF) -> float:
     """Threshold log τ that rejects a fraction ``p_miss`` of true pairs.
 
@@ -195,9 +198,11 @@ def correspondences(vertices_p, vertices_q, log_lr):
     """
     if len(vertices_p) == 0:
         return np.empty((0, 2), dtype=np.intp), 0
-    cand = np.stack([np.ravel(vertices_p), np.ravel(vertices_q)], axis=1)
+    vp, vq = np.ravel(vertices_p).astype(np.int64), np.ravel(vertices_q).astype(np.int64)
     score = np.repeat(log_lr, 3)
-    uniq, inverse, votes = np.unique(cand, axis=0, return_inverse=True, return_counts=True)
+    n = int(vq.max()) + 1
+    keys, inverse, votes = np.unique(vp * n + vq, return_inverse=True, return_counts=True)
+    uniq = np.stack([keys // n, keys % n], axis=1)  # sorted by (p, q), as the keys
     best = np.full(uniq.shape[0], -np.inf)
     np.maximum.at(best, inverse.ravel(), score)
     order = np.lexsort((uniq[:, 1], uniq[:, 0], -best, -votes))

@@ -18,6 +18,7 @@ The paper writes θ* = sgn(β)[cos⁻¹(α/√(α²+β²)) - π], which is wrong
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -185,11 +186,13 @@ class Alignment:
         ``-J* / (2σ²)``.
     dof : int
         ``2n - 3``: degrees of freedom of ``J*/σ²`` under H1.
+    sigma : float
     cov : (3, 3) ndarray
         Covariance of ``(θ*, t*_x, t*_y)``: inverse Fisher information with
         the landmarks µ profiled out (Cramér-Rao bound, evaluated at µ*).
+        Computed on first use.
     mu_cov : (n, 2, 2) ndarray
-        Covariance of each fused landmark µ*_v.
+        Covariance of each fused landmark µ*_v (computed on first use).
     """
 
     theta: float
@@ -198,8 +201,19 @@ class Alignment:
     cost: float
     log_lr: float
     dof: int
-    cov: np.ndarray
-    mu_cov: np.ndarray
+    sigma: float
+
+    @functools.cached_property
+    def _covariances(self):
+        return transform_covariance(self.mu, self.theta, self.sigma)
+
+    @property
+    def cov(self) -> np.ndarray:
+        return self._covariances[0]
+
+    @property
+    def mu_cov(self) -> np.ndarray:
+        return self._covariances[1]
 
 
 #: J = [[0, -1], [1, 0]]: dR/dθ = R J.
@@ -266,7 +280,6 @@ def _align(P: np.ndarray, Q: np.ndarray, sigma: float) -> Alignment:
     theta, t, cost = float(theta[0]), t[0], float(cost[0])
     rot = rotation(theta)
     mu = 0.5 * (P + (Q - t) @ rot)  # (Q - t) @ R = rows of Rᵀ (q - t)
-    cov, mu_cov = transform_covariance(mu, theta, sigma)
     return Alignment(
         theta=theta,
         t=t,
@@ -274,8 +287,7 @@ def _align(P: np.ndarray, Q: np.ndarray, sigma: float) -> Alignment:
         cost=cost,
         log_lr=-cost / (2.0 * sigma**2),
         dof=2 * P.shape[0] - 3,
-        cov=cov,
-        mu_cov=mu_cov,
+        sigma=sigma,
     )
 
 

@@ -54,6 +54,8 @@ GROW_FACTOR = 3.0
 #: expected number of equally good chance matches among the hypotheses
 #: tried) is at most this. Unrelated maps therefore give "no match".
 MATCH_NFA = 1e-3
+#: The χ² quantiles of the gates: 3 vertices (6 coordinates) and 1 landmark.
+GATE_6, GATE_2 = float(chi2.isf(GATE_P, 6)), float(chi2.isf(GATE_P, 2))
 #: Hypotheses (most inliers first) refitted on their inliers and recounted.
 REFINE = 8
 #: Refit-and-associate rounds after the consensus fit.
@@ -78,7 +80,7 @@ def _consensus(vp, vq, P, Q, scores, sigma):
     separates the true group from loose chance groups.
     """
     cp, cq = P[vp], Q[vq]
-    gate = chi2.isf(GATE_P, 6)
+    gate = GATE_6
     # Hypotheses are counted on a pool only: large maps have far more
     # candidates than any transform needs, and the landmark association that
     # follows brings every landmark back in.
@@ -214,7 +216,7 @@ def associate(P, Q, alignment, sigma):
     """
     x = (Q - alignment.t) @ rotation(alignment.theta)
     cov = mapped_covariance(x, alignment.theta, alignment.cov, sigma) + sigma**2 * np.eye(2)
-    gate = chi2.isf(GATE_P, 2)
+    gate = GATE_2
     radius = np.sqrt(gate * np.linalg.eigvalsh(cov)[:, 1].max())
     cand = cKDTree(P).sparse_distance_matrix(cKDTree(x), radius, output_type="coo_matrix")
     i, j = cand.row, cand.col
