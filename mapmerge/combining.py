@@ -75,8 +75,7 @@ def combine_maps(P: np.ndarray, Q: np.ndarray, pairs: np.ndarray, sigma: float):
     combined : CombinedMap
     """
     alignment: Alignment = _align(P[pairs[:, 0]], Q[pairs[:, 1]], sigma)
-    only_p = np.setdiff1d(np.arange(P.shape[0]), pairs[:, 0])
-    only_q = np.setdiff1d(np.arange(Q.shape[0]), pairs[:, 1])
+    only_p, only_q = _unpaired(P.shape[0], pairs[:, 0]), _unpaired(Q.shape[0], pairs[:, 1])
     q_in_p = (Q[only_q] - alignment.t) @ rotation(alignment.theta)
     k, n_p, n_q = pairs.shape[0], only_p.size, only_q.size
     combined = CombinedMap(
@@ -88,6 +87,12 @@ def combine_maps(P: np.ndarray, Q: np.ndarray, pairs: np.ndarray, sigma: float):
         alignment=alignment,
     )
     return alignment, combined
+
+
+def _unpaired(n: int, paired: np.ndarray) -> np.ndarray:
+    mask = np.ones(n, dtype=bool)
+    mask[paired] = False
+    return np.flatnonzero(mask)
 
 
 def p_only_map(P: np.ndarray, sigma: float) -> CombinedMap:

@@ -23,6 +23,7 @@ landmark id used for ground truth.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -109,7 +110,7 @@ class AgentPair:
     poses_p: int
     poses_q: int
 
-    @property
+    @functools.cached_property
     def n_common(self) -> int:
         return int(np.intersect1d(self.ids_p, self.ids_q).size)
 

@@ -193,7 +193,7 @@ def map_errors(scenario, result, success_deg: float = 1.0, success_rmse_sigmas: 
         rot_err_deg=rot_err_deg,
         trans_err=float(np.linalg.norm(result.t - scenario.t)),
         rmse=rmse,
-        duplicates=int(row_ids.size - np.unique(row_ids).size),
+        duplicates=int(row_ids.size - np.count_nonzero(np.bincount(row_ids))),
         success=bool(rot_err_deg < success_deg and rmse < success_rmse_sigmas * scenario.sigma),
     )
     return out

@@ -17,6 +17,7 @@ landmarks. Row order of each map is shuffled so indices carry no truth.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -62,7 +63,7 @@ class Scenario:
     snr_db: float
     sigma_bar2: float
 
-    @property
+    @functools.cached_property
     def n_common(self) -> int:
         return int(np.intersect1d(self.ids_p, self.ids_q).size)
 

@@ -104,3 +104,24 @@ def test_astroalign_baseline():
     # Three points cannot be matched by astroalign: an honest "no match".
     tiny = mm.merge_maps(sc.p[:3], sc.q[:3] + 100, sc.sigma, method="astroalign")
     assert not tiny.matched
+
+
+@pytest.mark.slow
+def test_consensus_targets_at_scale_of_the_issue():
+    """The issue's targets on 60 trials per SNR and 300 unrelated pairs (slow)."""
+    for snr, need in ((40, 0.95), (30, 0.90)):
+        tp = common = fp = 0
+        for seed in range(60):
+            sc = mm.simulate.make_pair(100, 0.75, snr, rng=seed)
+            c = _counts(sc, mm.merge_maps(sc.p, sc.q, sc.sigma, method="consensus"))
+            tp, common, fp = tp + c["tp"], common + c["common"], fp + c["fp"]
+        assert tp >= need * common
+        assert fp <= 0.01 * tp  # only coincident-landmark swaps remain
+    success = sum(
+        metrics.map_errors(sc, mm.merge_maps(sc.p, sc.q, sc.sigma, method="consensus"))["success"]
+        for sc in (mm.simulate.make_pair(100, 0.75, 20, rng=s) for s in range(60))
+    )
+    assert success >= 0.97 * 60
+    for seed in range(300):
+        sc = mm.simulate.make_pair(100, 0.75, 30, rng=seed, unrelated=True)
+        assert not mm.merge_maps(sc.p, sc.q, sc.sigma, method="consensus").matched
