@@ -18,8 +18,10 @@ between unrelated triangles do not. ``consensus_merge``:
    refits on all associations (``ASSOCIATION_ROUNDS`` times), and accepts
    the match only if chance would rarely produce one as good
    (``match_nfa``, an a contrario test);
-4. declares every triangle pair whose three landmarks are associated, so
-   common landmarks appear once in the combined map.
+4. declares every triangle pair whose three landmarks are associated and
+   not contested (two landmarks closer than the noise can swap, and no
+   data can tell which way), and fuses every association, so common
+   landmarks appear once in the combined map.
 """
 
 from __future__ import annotations
@@ -61,6 +63,10 @@ MATCH_NFA = 1e-6
 GATE_6, GATE_2 = float(chi2.isf(GATE_P, 6)), float(chi2.isf(GATE_P, 2))
 #: Hypotheses (most inliers first) refitted on their inliers and recounted.
 REFINE = 8
+#: Σ d² margin under which two landmark assignments are indistinguishable
+#: (a likelihood ratio below 100): triangles on such contested landmarks are
+#: not declared, though the landmarks are still fused.
+AMBIGUITY_D2 = 2 * np.log(100.0)
 #: Refit-and-associate rounds after the consensus fit.
 ASSOCIATION_ROUNDS = 2
 
@@ -214,8 +220,11 @@ def associate(P, Q, alignment, sigma):
 
     Returns
     -------
-    (K, 2) int ndarray
+    pairs : (K, 2) int ndarray
         Landmark pairs (p, q), sorted by p index.
+    contested : (K,) bool ndarray
+        Pairs whose best alternative assignment is within ``AMBIGUITY_D2``
+        in Σ d² (e.g. two landmarks closer than the noise, which can swap).
     """
     x = (Q - alignment.t) @ rotation(alignment.theta)
     cov = mapped_covariance(x, alignment.theta, alignment.cov, sigma) + sigma**2 * np.eye(2)
@@ -228,25 +237,37 @@ def associate(P, Q, alignment, sigma):
     ok = d2 <= gate
     i, j, d2 = i[ok], j[ok], d2[ok]
     if i.size == 0:
-        return np.empty((0, 2), dtype=np.intp)
+        return np.empty((0, 2), dtype=np.intp), np.empty(0, dtype=bool)
     n_p = P.shape[0]
     graph = coo_matrix((np.ones(i.size), (i, n_p + j)), shape=(n_p + len(Q),) * 2)
     _, label = connected_components(graph, directed=False)
     comp = label[i]
-    sizes = np.bincount(comp)
-    single = sizes[comp] == 1  # the common case: one candidate, no contest
+    single = np.bincount(comp)[comp] == 1  # the common case: one candidate, no contest
     pairs = [np.stack([i[single], j[single]], axis=1)]
+    contested = [np.zeros(int(single.sum()), dtype=bool)]
     for k in np.unique(comp[~single]):
         sel = comp == k
         rows, ri = np.unique(i[sel], return_inverse=True)
         cols, ci = np.unique(j[sel], return_inverse=True)
-        cost = np.full((rows.size, cols.size), 2 * gate + 1.0)
+        cost = np.full((rows.size, cols.size), gate)  # leaving a landmark unpaired costs the gate
         cost[ri, ci] = d2[sel]
         r, c = linear_sum_assignment(cost)
-        keep = cost[r, c] <= gate
+        keep = cost[r, c] < gate
+        best = cost[r, c].sum()
+        # A pair is contested when forbidding it costs less than the margin:
+        # the data cannot tell that assignment from the runner-up.
+        margin = np.empty(int(keep.sum()))
+        for m, (a, b) in enumerate(zip(r[keep], c[keep])):
+            alt = cost.copy()
+            alt[a, b] = 2 * gate
+            ra, ca = linear_sum_assignment(alt)
+            margin[m] = np.minimum(alt[ra, ca], gate).sum() - best
         pairs.append(np.stack([rows[r[keep]], cols[c[keep]]], axis=1))
+        contested.append(margin < AMBIGUITY_D2)
     pairs = np.concatenate(pairs).astype(np.intp)
-    return pairs[np.argsort(pairs[:, 0], kind="stable")]
+    contested = np.concatenate(contested)
+    order = np.argsort(pairs[:, 0], kind="stable")
+    return pairs[order], contested[order]
 
 
 def match_nfa(P, Q, alignment, pairs, n_hypotheses: int, sigma: float) -> float:
@@ -329,30 +350,26 @@ def consensus_merge(P, Q, sigma, match, log_tau):
     from .merging import finish
 
     cand = np.flatnonzero(match.triangle_log_lr >= log_tau)
-    vp = match.p_vertices[cand]
-    vq = match.q_vertices[cand]
-    scores = match.triangle_log_lr[cand]
+    vp, vq, scores = match.p_vertices[cand], match.q_vertices[cand], match.triangle_log_lr[cand]
     pairs, n_conflicts = np.empty((0, 2), dtype=np.intp), 0
     if cand.size >= MIN_CONSENSUS:
         group = _consensus(vp, vq, P, Q, scores, sigma)
         if group.size >= MIN_CONSENSUS:
             pairs, n_conflicts = correspondences(vp[group], vq[group], scores[group])
             pairs = reject_outliers(P, Q, pairs, sigma)
-    if pairs.shape[0] < 3:
+    contested = np.zeros(len(pairs), dtype=bool)
+    for _ in range(ASSOCIATION_ROUNDS):
+        if pairs.shape[0] < 3:
+            break
+        pairs, contested = associate(P, Q, _align(P[pairs[:, 0]], Q[pairs[:, 1]], sigma), sigma)
+    if pairs.shape[0] < 3 or match_nfa(
+        P, Q, _align(P[pairs[:, 0]], Q[pairs[:, 1]], sigma), pairs, cand.size, sigma
+    ) > MATCH_NFA:
         none = np.zeros(match.triangle_pairs.shape[0], dtype=bool)
         return finish(P, Q, sigma, np.empty((0, 2), dtype=np.intp), n_conflicts,
                       match.triangle_pairs, match.triangle_log_lr, none, log_tau,
                       match.tri_p, match.tri_q, "consensus")
-    for _ in range(ASSOCIATION_ROUNDS):
-        alignment = _align(P[pairs[:, 0]], Q[pairs[:, 1]], sigma)
-        pairs = associate(P, Q, alignment, sigma)
-        if pairs.shape[0] < 3:
-            break
-    if pairs.shape[0] >= 3:
-        alignment = _align(P[pairs[:, 0]], Q[pairs[:, 1]], sigma)
-        if match_nfa(P, Q, alignment, pairs, cand.size, sigma) > MATCH_NFA:
-            pairs = np.empty((0, 2), dtype=np.intp)
-    tri_pairs, _, tri_scores = declared_triangles(match, pairs, P, Q, sigma)
+    tri_pairs, _, tri_scores = declared_triangles(match, pairs[~contested], P, Q, sigma)
     # Keep the LP's other tentative pairs (undeclared) so that their labels
     # still count as misses or true negatives.
     n_tq = len(match.tri_q)
