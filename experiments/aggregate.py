@@ -91,6 +91,8 @@ def roc_tables(pairs: pd.DataFrame) -> tuple[pd.DataFrame, pd.DataFrame]:
             "n_true": int(g["label"].sum()),
             "n_order_flips": int((g["label"] & ~g["order_consistent"]).sum()),
         })
+    if not rocs:  # only methods without triangle scores (baselines)
+        return pd.DataFrame(columns=CELL + ["p_fa", "p_d", "log_tau"]), pd.DataFrame(columns=CELL + ["auc"])
     return pd.concat(rocs, ignore_index=True), pd.DataFrame(aucs)
 
 

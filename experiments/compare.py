@@ -39,6 +39,8 @@ def comparison_table(table: pd.DataFrame) -> pd.DataFrame:
     unrelated = table[table.unrelated.astype(bool)][KEYS + ["n_trials", "false_merge_rate"]]
     out = related.merge(unrelated, on=KEYS, how="left", suffixes=("", "_unrelated"))
     out["fp_per_trial"] = out.fp / out.n_trials
+    # astroalign returns matched points, not triangles: no triangle counts.
+    out.loc[out.method == "astroalign", ["recall_common", "fp_per_trial"]] = float("nan")
     out["false_merges"] = (out.false_merge_rate_unrelated * out.n_trials_unrelated).round()
     cols = KEYS + ["n_trials", "recall_common", "fp_per_trial", "landmark_precision",
                    "landmark_recall", "success_rate", "false_merges", "n_trials_unrelated",
