@@ -26,7 +26,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from .aggregate import save_table  # noqa: E402
+from .aggregate import CELL, save_table  # noqa: E402
 from .figures import STYLE, _save  # noqa: E402
 from .paper import _call  # noqa: E402
 
@@ -71,7 +71,9 @@ def write_tables(out: Path) -> list[Path]:
     tables = sorted(out.glob("*/table.csv"))
     if not tables:
         raise FileNotFoundError(f"no */table.csv below {out}: run without --tables first")
-    comp = comparison_table(pd.concat([pd.read_csv(t) for t in tables], ignore_index=True))
+    table = pd.concat([pd.read_csv(t).merge(pd.read_csv(t.with_name("timing.csv")), on=CELL + ["tau"])
+                       for t in tables], ignore_index=True)
+    comp = comparison_table(table)
     return [*save_table(comp, out / "compare"), *success_figure(comp, out)]
 
 
