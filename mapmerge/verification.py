@@ -62,7 +62,7 @@ MATCH_NFA = 1e-6
 #: The χ² quantiles of the gates: 3 vertices (6 coordinates) and 1 landmark.
 GATE_6, GATE_2 = float(chi2.isf(GATE_P, 6)), float(chi2.isf(GATE_P, 2))
 #: Hypotheses (most inliers first) refitted on their inliers and recounted.
-REFINE = 8
+REFINE = 32
 #: Σ d² margin under which two landmark assignments are indistinguishable
 #: (a likelihood ratio below 100): triangles on such contested landmarks are
 #: not declared, though the landmarks are still fused.
