@@ -27,9 +27,15 @@ import pandas as pd
 
 from mapmerge import metrics
 
-CELL = ["n_landmarks", "overlap", "snr_db", "aspect", "unrelated", "method", "objective"]
+CELL = ["kind", "cut", "source", "n_landmarks", "overlap", "snr_db", "aspect", "unrelated",
+        "method", "objective", "use_cov"]
 #: P_FA values at which stored ROC curves are sampled (the full curve gives AUC).
 PFA_GRID = np.unique(np.r_[0.0, np.logspace(-5, 0, 151), np.linspace(0, 1, 201)])
+
+
+def _with_defaults(trials: pd.DataFrame) -> pd.DataFrame:
+    """Runs written before ``matcher.use_cov`` existed did not use covariances."""
+    return trials if "use_cov" in trials else trials.assign(use_cov=False)
 
 
 def find_runs(dirs) -> list[Path]:
@@ -43,7 +49,7 @@ def load_examples(dirs) -> dict[str, pd.DataFrame]:
     """Example-trial geometry tables of every run, tagged with their cell."""
     found: dict[str, list[pd.DataFrame]] = {}
     for run in find_runs(dirs):
-        cell = pd.read_parquet(run / "trials.parquet", columns=CELL).iloc[0].to_dict()
+        cell = _with_defaults(pd.read_parquet(run / "trials.parquet"))[CELL].iloc[0].to_dict()
         for path in sorted(run.glob("example_*.parquet")):
             found.setdefault(path.stem, []).append(pd.read_parquet(path).assign(**cell))
     return {name: pd.concat(parts, ignore_index=True) for name, parts in found.items()}
@@ -53,7 +59,7 @@ def load(dirs) -> tuple[pd.DataFrame, pd.DataFrame]:
     """All trials, and all tentative pairs tagged with their cell."""
     trials, pairs = [], []
     for run in find_runs(dirs):
-        t = pd.read_parquet(run / "trials.parquet")
+        t = _with_defaults(pd.read_parquet(run / "trials.parquet"))
         t = t.merge(pd.read_parquet(run / "timings.parquet"), on=["trial", "tau"], how="left")
         p = pd.read_parquet(run / "pairs.parquet")
         cell = t[CELL + ["seed"]].iloc[0]

@@ -138,7 +138,7 @@ def run(cfg: DictConfig, output_dir: str | Path) -> Path:
                     bar.update(b - a)
 
     cell = {**scenario, "method": cfg.matcher.method, "objective": cfg.matcher.objective,
-            "seed": seed, "cell_key": cell_key(scenario)}
+            "use_cov": cfg.matcher.use_cov, "seed": seed, "cell_key": cell_key(scenario)}
     parts = {kind: [pd.read_parquet(f"{stem(a, b)}.{kind}.parquet") for a, b in bounds]
              for kind in ("trials", "pairs", "timings")}
     trials = pd.concat(parts["trials"], ignore_index=True)

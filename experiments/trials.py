@@ -98,11 +98,15 @@ def merge_trial(sc, matcher: dict):
     labels = metrics.triangle_labels(
         sc.ids_p, sc.ids_q, match.tri_p.vertices, match.tri_q.vertices, match.triangle_pairs
     )
+    variances = {}
+    if matcher.get("use_cov") and hasattr(sc, "cov_p"):
+        variances = {"var_p": np.trace(sc.cov_p, axis1=1, axis2=2) / 2,
+                     "var_q": np.trace(sc.cov_q, axis1=1, axis2=2) / 2}
     results = []
     for rule in matcher["taus"]:
         start = time.perf_counter()
         log_tau = resolve_tau(rule, labels[0], match.triangle_log_lr)
-        res = merge_at(sc.p, sc.q, sc.sigma, match, log_tau, method)
+        res = merge_at(sc.p, sc.q, sc.sigma, match, log_tau, method, **variances)
         results.append((rule, res, time.perf_counter() - start))
     return match, labels, results, time_match
 

@@ -32,7 +32,7 @@ from .paper import _call  # noqa: E402
 
 SWEEP = Path("outputs/sweeps/victoria_park")
 COLUMNS = {
-    "cut": "cut", "source": "source", "method": "method", "n_p": "trees p", "n_q": "trees q",
+    "cut": "cut", "source": "source", "method": "method", "use_cov": "covariances", "n_p": "trees p", "n_q": "trees q",
     "n_common_landmarks": "common", "correct_pairs": "correct", "wrong_pairs": "wrong",
     "rot_err_deg": "rot err (deg)", "trans_err": "trans err (m)", "rmse": "RMSE (m)",
     "ms": "time (ms)",
@@ -46,14 +46,16 @@ def load_runs(sweep: Path) -> tuple[pd.DataFrame, pd.DataFrame]:
         t = t.merge(pd.read_parquet(run / "timings.parquet"), on=["trial", "tau"])
         trials.append(t)
         if (run / "example_landmarks.parquet").exists():
-            cell = t[["cut", "source", "method"]].iloc[0].to_dict()
+            cell = t[["cut", "source", "method", "use_cov"]].iloc[0].to_dict()
             examples.append(pd.read_parquet(run / "example_landmarks.parquet").assign(**cell))
     return pd.concat(trials, ignore_index=True), pd.concat(examples, ignore_index=True)
 
 
 def table(trials: pd.DataFrame) -> pd.DataFrame:
+    # Only consensus reads covariances: other methods' runs with them are repeats.
+    trials = trials[~trials.use_cov | (trials.method == "consensus")]
     t = trials.assign(ms=1e3 * (trials.time_match_s + trials.time_merge_s))
-    t = t[list(COLUMNS)].sort_values(["source", "cut", "method"])
+    t = t[list(COLUMNS)].sort_values(["source", "cut", "method", "use_cov"])
     return t.rename(columns=COLUMNS)
 
 
@@ -63,7 +65,8 @@ def figure(examples: pd.DataFrame, out: Path, cut: int = DEFAULT_CUT, method: st
     with plt.rc_context(STYLE):
         fig, axes = plt.subplots(len(sources), 3, figsize=(8.0, 3.0 * len(sources)), squeeze=False)
         for row, source in zip(axes, sources):
-            ex = examples[(examples.cut == cut) & (examples.source == source) & (examples.method == method)]
+            ex = examples[(examples.cut == cut) & (examples.source == source)
+                          & (examples.method == method) & ~examples.use_cov]
             for ax, kind, title in zip(row[:2], ("p", "q"), ("agent p (before the cut)", "agent q (from the cut)")):
                 pts = ex[ex.kind == kind]
                 ax.scatter(pts.x, pts.y, s=6, c="tab:blue" if kind == "p" else "tab:orange")

@@ -42,3 +42,18 @@ def check_sigma(sigma, name: str = "sigma") -> float:
     if not math.isfinite(value) or value <= 0:
         raise ValueError(f"{name} must be a positive finite number, got {sigma!r}")
     return value
+
+
+def check_variances(var, n: int, name: str):
+    """None, or a positive finite (n,) float array of per-landmark variances."""
+    if var is None:
+        return None
+    try:
+        arr = np.asarray(var, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be an array of {n} positive numbers") from None
+    if arr.shape != (n,):
+        raise ValueError(f"{name} must have shape ({n},), one variance per landmark, got {arr.shape}")
+    if not np.all(np.isfinite(arr)) or np.any(arr <= 0):
+        raise ValueError(f"{name} must hold positive finite variances")
+    return arr

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._validation import check_points, check_sigma
+from ._validation import check_points, check_sigma, check_variances
 from .combining import CombinedMap, combine_maps, p_only_map
 from .matching import (
     OBJECTIVES, assign, assign_sparse, candidate_pairs, correspondences, resolve_log_tau,
@@ -111,7 +111,8 @@ class MergeResult:
         return self.combined.cov
 
 
-def merge_maps(P, Q, sigma, tau=DEFAULT_TAU, method="paper", objective="lr") -> MergeResult:
+def merge_maps(P, Q, sigma, tau=DEFAULT_TAU, method="paper", objective="lr",
+               var_p=None, var_q=None) -> MergeResult:
     """Match two landmark maps and build their maximum-likelihood combination.
 
     Parameters
@@ -129,6 +130,10 @@ def merge_maps(P, Q, sigma, tau=DEFAULT_TAU, method="paper", objective="lr") -> 
         ``astroalign`` package.
     objective : {"lr", "loglr"}
         LP objective: Σ Λ as in the paper, or Σ log Λ.
+    var_p, var_q : (n,) array_like, optional
+        Per-landmark variances (per coordinate, e.g. half the trace of each
+        landmark's covariance) for ``method="consensus"``: its landmark
+        association gates and significance test use them instead of σ².
 
     Returns
     -------
@@ -137,11 +142,13 @@ def merge_maps(P, Q, sigma, tau=DEFAULT_TAU, method="paper", objective="lr") -> 
     Raises
     ------
     ValueError
-        On invalid maps, ``sigma``, ``tau``, ``method`` or ``objective``.
+        On invalid maps, ``sigma``, ``tau``, ``method``, ``objective`` or
+        variances.
     """
     P = check_points(P, "P")
     Q = check_points(Q, "Q")
     sigma = check_sigma(sigma)
+    var_p, var_q = check_variances(var_p, len(P), "var_p"), check_variances(var_q, len(Q), "var_q")
     log_tau = resolve_log_tau(tau)
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
@@ -156,7 +163,7 @@ def merge_maps(P, Q, sigma, tau=DEFAULT_TAU, method="paper", objective="lr") -> 
     # only the LP's choice: at scale chance congruences outbid most true pairs.
     match = match_triangles(P, Q, sigma, objective, cyclic=method != "paper", log_tau=log_tau,
                             solve_lp=method != "consensus")
-    return merge_at(P, Q, sigma, match, log_tau, method)
+    return merge_at(P, Q, sigma, match, log_tau, method, var_p, var_q)
 
 
 @dataclass(frozen=True)
@@ -234,13 +241,13 @@ def match_triangles(
 
 def merge_at(
     P: np.ndarray, Q: np.ndarray, sigma: float, match: TriangleMatch, log_tau: float,
-    method: str = "paper",
+    method: str = "paper", var_p=None, var_q=None,
 ) -> MergeResult:
     """Declare, associate landmarks and combine at one threshold log τ."""
     if method == "consensus":
         from .verification import consensus_merge
 
-        return consensus_merge(P, Q, sigma, match, log_tau)
+        return consensus_merge(P, Q, sigma, match, log_tau, var_p, var_q)
     scores = match.triangle_log_lr
     declared = scores >= log_tau
     pairs, n_conflicts = correspondences(

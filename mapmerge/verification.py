@@ -210,13 +210,21 @@ def reject_outliers(P, Q, pairs, sigma, gate_p=GATE_P):
     return pairs
 
 
-def associate(P, Q, alignment, sigma):
+def _gate_covariance(x, alignment, sigma, var_q):
+    """Per q landmark: its own noise plus the fitted transform's error, mapped into p."""
+    transform = mapped_covariance(x, alignment.theta, alignment.cov, sigma) - sigma**2 * np.eye(2)
+    return transform + var_q[:, None, None] * np.eye(2)
+
+
+def associate(P, Q, alignment, sigma, var_p=None, var_q=None):
     """One-to-one landmark association under a fitted transform.
 
     Each pair (i, j) with Mahalanobis distance
-    ``d² = eᵀ (σ² I + Σ_xj)⁻¹ e``, ``e = p_i - R(θ)ᵀ (q_j - t)``, below the
-    χ²₂ gate is a candidate; the assignment minimising Σ d² is solved on
-    each connected component of the candidate graph.
+    ``d² = eᵀ (v_pi I + v_qj I + Σ_t,j)⁻¹ e``, ``e = p_i - R(θ)ᵀ (q_j - t)``
+    (v the landmarks' variances, σ² unless given, Σ_t,j the fitted
+    transform's error at q_j), below the χ²₂ gate is a candidate; the
+    assignment minimising Σ d² is solved on each connected component of the
+    candidate graph.
 
     Returns
     -------
@@ -226,14 +234,16 @@ def associate(P, Q, alignment, sigma):
         Pairs whose best alternative assignment is within ``AMBIGUITY_D2``
         in Σ d² (e.g. two landmarks closer than the noise, which can swap).
     """
+    var_p, var_q = _variances(var_p, len(P), sigma), _variances(var_q, len(Q), sigma)
     x = (Q - alignment.t) @ rotation(alignment.theta)
-    cov = mapped_covariance(x, alignment.theta, alignment.cov, sigma) + sigma**2 * np.eye(2)
+    cov_q = _gate_covariance(x, alignment, sigma, var_q)
     gate = GATE_2
-    radius = np.sqrt(gate * np.linalg.eigvalsh(cov)[:, 1].max())
+    radius = np.sqrt(gate * (np.linalg.eigvalsh(cov_q)[:, 1].max() + var_p.max()))
     cand = cKDTree(P).sparse_distance_matrix(cKDTree(x), radius, output_type="coo_matrix")
     i, j = cand.row, cand.col
     e = P[i] - x[j]
-    d2 = np.einsum("ki,kij,kj->k", e, np.linalg.inv(cov[j]), e)
+    cov = cov_q[j] + var_p[i, None, None] * np.eye(2)
+    d2 = np.einsum("ki,kij,kj->k", e, np.linalg.inv(cov), e)
     ok = d2 <= gate
     i, j, d2 = i[ok], j[ok], d2[ok]
     if i.size == 0:
@@ -270,7 +280,7 @@ def associate(P, Q, alignment, sigma):
     return pairs[order], contested[order]
 
 
-def match_nfa(P, Q, alignment, pairs, n_hypotheses: int, sigma: float) -> float:
+def match_nfa(P, Q, alignment, pairs, n_hypotheses: int, sigma: float, var_p=None, var_q=None) -> float:
     """Number of false alarms of a match, a contrario (Moisan & Stival 2004).
 
     Under "unrelated maps", a q landmark mapped inside map p's hull finds a p
@@ -283,14 +293,16 @@ def match_nfa(P, Q, alignment, pairs, n_hypotheses: int, sigma: float) -> float:
     ``n_hypotheses · C(N, k - 3) · α(d²_(k))^(k-3)`` over k. A match with
     NFA <= ``MATCH_NFA`` is expected to arise by chance at most that often.
     """
+    var_p, var_q = _variances(var_p, len(P), sigma), _variances(var_q, len(Q), sigma)
     x = (Q - alignment.t) @ rotation(alignment.theta)
-    cov = mapped_covariance(x, alignment.theta, alignment.cov, sigma) + sigma**2 * np.eye(2)
+    cov = _gate_covariance(x, alignment, sigma, var_q) + np.median(var_p) * np.eye(2)
     hull = ConvexHull(P)
     inside = np.all(x @ hull.equations[:, :2].T + hull.equations[:, 2] <= 0, axis=1)
     density = P.shape[0] / hull.volume  # a 2-D hull's "volume" is its area
     unit_area = density * np.pi * np.sqrt(np.linalg.det(cov[inside | np.isin(np.arange(len(Q)), pairs[:, 1])])).mean()
     e = P[pairs[:, 0]] - x[pairs[:, 1]]
-    d2 = np.sort(np.einsum("ki,kij,kj->k", e, np.linalg.inv(cov[pairs[:, 1]]), e))
+    cov_pairs = cov[pairs[:, 1]] + (var_p[pairs[:, 0]] - np.median(var_p))[:, None, None] * np.eye(2)
+    d2 = np.sort(np.einsum("ki,kij,kj->k", e, np.linalg.inv(cov_pairs), e))
     n_in = max(int(inside.sum()), len(pairs))
     k = np.arange(4, len(pairs) + 1)
     free = k - 3
@@ -328,7 +340,11 @@ def declared_triangles(match, pairs, P, Q, sigma):
     return tri_pairs, q_vertices, -cost / (2.0 * sigma**2)
 
 
-def consensus_merge(P, Q, sigma, match, log_tau):
+def _variances(var, n: int, sigma: float) -> np.ndarray:
+    return np.full(n, sigma**2) if var is None else np.asarray(var, dtype=float)
+
+
+def consensus_merge(P, Q, sigma, match, log_tau, var_p=None, var_q=None):
     """The ``method="consensus"`` merge (inputs already valid).
 
     Parameters
@@ -340,6 +356,9 @@ def consensus_merge(P, Q, sigma, match, log_tau):
         LP output with the order-robust statistic.
     log_tau : float
         Threshold for a tentative pair to become a hypothesis / candidate.
+    var_p, var_q : (n,) ndarray, optional
+        Per-landmark variances (per coordinate) used by the association
+        gates and the significance test instead of σ².
 
     Returns
     -------
@@ -361,9 +380,10 @@ def consensus_merge(P, Q, sigma, match, log_tau):
     for _ in range(ASSOCIATION_ROUNDS):
         if pairs.shape[0] < 3:
             break
-        pairs, contested = associate(P, Q, _align(P[pairs[:, 0]], Q[pairs[:, 1]], sigma), sigma)
+        pairs, contested = associate(P, Q, _align(P[pairs[:, 0]], Q[pairs[:, 1]], sigma), sigma,
+                                     var_p, var_q)
     if pairs.shape[0] < 3 or match_nfa(
-        P, Q, _align(P[pairs[:, 0]], Q[pairs[:, 1]], sigma), pairs, cand.size, sigma
+        P, Q, _align(P[pairs[:, 0]], Q[pairs[:, 1]], sigma), pairs, cand.size, sigma, var_p, var_q
     ) > MATCH_NFA:
         none = np.zeros(match.triangle_pairs.shape[0], dtype=bool)
         return finish(P, Q, sigma, np.empty((0, 2), dtype=np.intp), n_conflicts,

@@ -198,9 +198,10 @@ def test_multirun_end_to_end_through_aggregation_and_figures(tmp_path):
 
 def test_victoria_park_preset_runs_real_data(tmp_path):
     proc = _cli(["-m", "experiment=victoria_park", "scenario.cut=3483", "scenario.source=reference",
-                 "matcher.method=paper,consensus", "mc.progress=false"], tmp_path)
+                 "matcher.method=paper,consensus", "matcher.use_cov=false", "mc.progress=false"], tmp_path)
     assert proc.returncode == 0, proc.stderr[-2000:]
     runs = sorted((tmp_path / "outputs" / "sweeps" / "victoria_park").glob("*/trials.parquet"))
     trials = pd.concat([pd.read_parquet(r) for r in runs]).set_index("method")
     assert list(trials.n_p) == [82, 82] and list(trials.n_common_landmarks) == [66, 66]
     assert trials.loc["consensus", "rot_err_deg"] < 1 and trials.loc["consensus", "trans_err"] < 1
+    assert (tmp_path / "outputs" / "sweeps" / "victoria_park" / "aggregate" / "table.csv").exists()
