@@ -3,16 +3,19 @@
 True triangle matches all share one rigid motion (θ, t); chance congruences
 between unrelated triangles do not. ``consensus_merge``:
 
-1. takes the LP's tentative pairs that pass log τ (order-robust statistic)
-   as hypotheses, each with its own closed-form (θ_h, t_h);
+1. takes the LP's tentative pairs that pass log τ (order-robust statistic;
+   on the sparse large-map path every gated candidate that passes) as
+   hypotheses, each with its own closed-form (θ_h, t_h); with more
+   candidates than ``MAX_POOL``, a Hough vote in (θ, t) picks the pool;
 2. counts, for every hypothesis, the candidate pairs whose three vertices it
    maps onto their partners within a χ²₆ gate. The gate's variance is the
    noise of both maps plus the hypothesis's own uncertainty at each vertex
    (translation and rotation error of a 3-point fit), so tolerances come
    from σ, not from hand-tuned constants;
 3. keeps the largest transform-consistent set (at least
-   ``MIN_CONSENSUS`` triangle pairs, otherwise "no match"), refits with the
-   n-point closed form, then associates *every* landmark one-to-one under
+   ``MIN_CONSENSUS`` triangle pairs, otherwise "no match"; on large maps
+   grown ring by ring from the hypothesis), refits with the n-point closed
+   form dropping outliers, then associates *every* landmark one-to-one under
    the fitted transform with a χ²₂ gate on the Mahalanobis distance
    (assignment per connected component of the gated candidate graph), and
    refits on all associations (``ASSOCIATION_ROUNDS`` times), and accepts
