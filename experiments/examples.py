@@ -23,7 +23,11 @@ def _triangle_status(n_tri, side, triangle_pairs, is_true, declared, common):
     # unless that wrong pairing was declared (then it is a false positive).
     idx = triangle_pairs[:, side]
     keep = is_true | declared | (status[idx] != "unpaired")
-    status[idx[keep]] = label[keep]
+    # A triangle in several pairs (consensus keeps the LP's undeclared ones)
+    # shows its most telling status: tp over fp over md over tn.
+    rank = np.select([label == "tp", label == "fp", label == "md"], [3, 2, 1], 0)
+    order = np.flatnonzero(keep)[np.argsort(rank[keep], kind="stable")]
+    status[idx[order]] = label[order]
     return status
 
 

@@ -134,7 +134,7 @@ def roc_curve(y_true, y_score):
     last = np.r_[np.flatnonzero(np.diff(score) != 0), score.size - 1] if score.size else np.array([], int)
     tps = np.cumsum(label)[last]
     fps = (last + 1) - tps
-    n_pos, n_neg = max(int(label.sum()), 0), int((~label).sum())
+    n_pos, n_neg = int(label.sum()), int((~label).sum())
     tpr = np.r_[0.0, tps / n_pos] if n_pos else np.r_[0.0, np.full(last.size, np.nan)]
     fpr = np.r_[0.0, fps / n_neg] if n_neg else np.r_[0.0, np.full(last.size, np.nan)]
     return fpr, tpr, np.r_[np.inf, score[last]]

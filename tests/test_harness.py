@@ -205,3 +205,16 @@ def test_victoria_park_preset_runs_real_data(tmp_path):
     assert list(trials.n_p) == [82, 82] and list(trials.n_common_landmarks) == [66, 66]
     assert trials.loc["consensus", "rot_err_deg"] < 1 and trials.loc["consensus", "trans_err"] < 1
     assert (tmp_path / "outputs" / "sweeps" / "victoria_park" / "aggregate" / "table.csv").exists()
+
+
+def test_example_triangle_status_prefers_the_telling_pair():
+    import numpy as np
+
+    from experiments.examples import _triangle_status
+
+    pairs = np.array([[0, 5], [0, 6], [1, 7], [2, 8]])
+    is_true = np.array([True, False, False, True])
+    declared = np.array([True, False, False, False])
+    common = np.array([[0, 5], [1, 9], [2, 8]])
+    status = _triangle_status(4, 0, pairs, is_true, declared, common)
+    assert list(status) == ["tp", "unpaired", "md", "other"]
