@@ -51,7 +51,10 @@ def load_examples(dirs) -> dict[str, pd.DataFrame]:
     for run in find_runs(dirs):
         cell = _with_defaults(pd.read_parquet(run / "trials.parquet"))[CELL].iloc[0].to_dict()
         for path in sorted(run.glob("example_*.parquet")):
-            found.setdefault(path.stem, []).append(pd.read_parquet(path).assign(**cell))
+            table = pd.read_parquet(path)
+            # The table's own columns win (its "kind" is p / q / merged / truth).
+            found.setdefault(path.stem, []).append(
+                table.assign(**{k: v for k, v in cell.items() if k not in table.columns}))
     return {name: pd.concat(parts, ignore_index=True) for name, parts in found.items()}
 
 

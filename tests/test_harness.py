@@ -188,6 +188,8 @@ def test_multirun_end_to_end_through_aggregation_and_figures(tmp_path):
     roc = pd.read_csv(results / "fig3" / "roc.csv")
     assert roc.groupby(["n_landmarks", "overlap", "snr_db"]).p_fa.is_monotonic_increasing.all()
     assert (results / "fig1" / "table.md").read_text().startswith("|")
+    examples = pd.read_csv(results / "fig1" / "examples_landmarks.csv")
+    assert set(examples["kind"]) == {"p", "q", "merged", "truth"}
 
     from experiments.figures import draw_all
 
