@@ -53,7 +53,7 @@ class CombinedMap:
             fused, only_q = self.origin == "fused", self.origin == "q"
             cov[fused] = self.alignment.mu_cov
             cov[only_q] = mapped_covariance(self.points[only_q], self.alignment.theta,
-                                            self.alignment.cov, self.sigma)
+                                            self.alignment.cov, self.sigma**2)
         return cov
 
 

@@ -241,10 +241,15 @@ def transform_covariance(mu: np.ndarray, theta: float, sigma: float):
     return cov, mu_cov
 
 
-def mapped_covariance(x: np.ndarray, theta: float, cov: np.ndarray, sigma: float) -> np.ndarray:
-    """Covariance (m, 2, 2) of q landmarks mapped into p's frame, x = Rᵀ(q - t)."""
+def mapped_covariance(x: np.ndarray, theta: float, cov: np.ndarray, var) -> np.ndarray:
+    """Covariance (m, 2, 2) of q landmarks mapped into p's frame, x = Rᵀ(q - t).
+
+    ``var`` is the landmarks' own variance per coordinate (a scalar, or one
+    per landmark); ``cov`` the (θ, t) covariance of the transform.
+    """
     G = np.concatenate([(-(x @ _J.T))[:, :, None], np.broadcast_to(-rotation(theta).T, (x.shape[0], 2, 2))], axis=2)
-    return sigma**2 * np.eye(2) + G @ cov @ G.transpose(0, 2, 1)
+    own = np.broadcast_to(np.asarray(var, dtype=float), (x.shape[0],))[:, None, None] * np.eye(2)
+    return own + G @ cov @ G.transpose(0, 2, 1)
 
 
 def align(P, Q, sigma=1.0) -> Alignment:

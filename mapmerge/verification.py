@@ -213,12 +213,6 @@ def reject_outliers(P, Q, pairs, sigma, gate_p=GATE_P):
     return pairs
 
 
-def _gate_covariance(x, alignment, sigma, var_q):
-    """Per q landmark: its own noise plus the fitted transform's error, mapped into p."""
-    transform = mapped_covariance(x, alignment.theta, alignment.cov, sigma) - sigma**2 * np.eye(2)
-    return transform + var_q[:, None, None] * np.eye(2)
-
-
 def associate(P, Q, alignment, sigma, var_p=None, var_q=None):
     """One-to-one landmark association under a fitted transform.
 
@@ -239,7 +233,7 @@ def associate(P, Q, alignment, sigma, var_p=None, var_q=None):
     """
     var_p, var_q = _variances(var_p, len(P), sigma), _variances(var_q, len(Q), sigma)
     x = (Q - alignment.t) @ rotation(alignment.theta)
-    cov_q = _gate_covariance(x, alignment, sigma, var_q)
+    cov_q = mapped_covariance(x, alignment.theta, alignment.cov, var_q)
     gate = GATE_2
     radius = np.sqrt(gate * (np.linalg.eigvalsh(cov_q)[:, 1].max() + var_p.max()))
     cand = cKDTree(P).sparse_distance_matrix(cKDTree(x), radius, output_type="coo_matrix")
@@ -298,7 +292,7 @@ def match_nfa(P, Q, alignment, pairs, n_hypotheses: int, sigma: float, var_p=Non
     """
     var_p, var_q = _variances(var_p, len(P), sigma), _variances(var_q, len(Q), sigma)
     x = (Q - alignment.t) @ rotation(alignment.theta)
-    cov = _gate_covariance(x, alignment, sigma, var_q) + np.median(var_p) * np.eye(2)
+    cov = mapped_covariance(x, alignment.theta, alignment.cov, var_q) + np.median(var_p) * np.eye(2)
     hull = ConvexHull(P)
     inside = np.all(x @ hull.equations[:, :2].T + hull.equations[:, 2] <= 0, axis=1)
     density = P.shape[0] / hull.volume  # a 2-D hull's "volume" is its area
