@@ -26,6 +26,8 @@ from mapmerge.baselines import BASELINES
 from mapmerge.datasets import victoria_park
 from mapmerge.merging import match_triangles, merge_at
 
+from . import batched
+
 SCENARIO_KEYS = ("n_landmarks", "overlap", "snr_db", "aspect", "unrelated")
 #: Keys of a real-data scenario (``kind: victoria_park``).
 DATASET_KEYS = ("cut", "source")
@@ -47,7 +49,12 @@ def cell_key(scenario: dict) -> int:
 
 
 def trial_seed(root_seed: int, scenario: dict, k: int) -> np.random.SeedSequence:
-    return np.random.SeedSequence(int(root_seed), spawn_key=(cell_key(scenario), int(k)))
+    return trial_seeds(root_seed, scenario, [k])[0]
+
+
+def trial_seeds(root_seed: int, scenario: dict, ks) -> list[np.random.SeedSequence]:
+    key = cell_key(scenario)
+    return [np.random.SeedSequence(int(root_seed), spawn_key=(key, int(k))) for k in ks]
 
 
 @functools.lru_cache(maxsize=8)
@@ -153,8 +160,16 @@ def run_trial(root_seed: int, scenario: dict, matcher: dict, k: int):
     return rows, pairs
 
 
-def run_chunk(root_seed: int, scenario: dict, matcher: dict, start: int, stop: int):
-    """Trials ``start..stop-1`` of a cell as (trials, pairs) DataFrames."""
+def run_chunk(root_seed: int, scenario: dict, matcher: dict, start: int, stop: int,
+              batch: bool | None = None):
+    """Trials ``start..stop-1`` of a cell as (trials, pairs) DataFrames.
+
+    ``batch`` (default: whenever ``batched.supports`` the cell) runs the
+    chunk on the batched engine, which gives the same results many times
+    faster; ``batch=False`` forces the per-trial path.
+    """
+    if batch or (batch is None and batched.supports(scenario, matcher)):
+        return batched.run_chunk(root_seed, scenario, matcher, start, stop)
     rows, pair_parts = [], []
     for k in range(start, stop):
         trial_rows, pairs = run_trial(root_seed, scenario, matcher, k)

@@ -91,13 +91,17 @@ def assign(log_lr: np.ndarray, objective: str = "lr") -> np.ndarray:
         Rows ``(i, j)``: triangle i of p tentatively paired with j of q,
         sorted by i.
     """
+    rows, cols = linear_sum_assignment(lp_weight(log_lr, objective), maximize=True)
+    return np.stack([rows, cols], axis=1).astype(np.intp)
+
+
+def lp_weight(log_lr: np.ndarray, objective: str) -> np.ndarray:
+    """What the LP maximises the sum of: Λ (``"lr"``) or log Λ (``"loglr"``)."""
     if objective not in OBJECTIVES:
         raise ValueError(f"objective must be one of {OBJECTIVES}, got {objective!r}")
     # Λ = exp(log Λ) underflows to 0 for hopeless pairs: they are then exact
     # ties at zero weight, which is what Σ Λ means for them.
-    weight = np.exp(log_lr) if objective == "lr" else log_lr
-    rows, cols = linear_sum_assignment(weight, maximize=True)
-    return np.stack([rows, cols], axis=1).astype(np.intp)
+    return np.exp(log_lr) if objective == "lr" else log_lr
 
 
 def side_features(coords: np.ndarray) -> np.ndarray:
@@ -196,8 +200,26 @@ def correspondences(vertices_p, vertices_q, log_lr):
     n_conflicts : int
         Distinct candidate correspondences dropped as conflicting.
     """
+    uniq, keep = resolve_correspondences(vertices_p, vertices_q, log_lr)
+    return uniq[keep].astype(np.intp), int(keep.size - np.count_nonzero(keep))
+
+
+def resolve_correspondences(vertices_p, vertices_q, log_lr):
+    """Candidate correspondences of declared pairs and which of them survive.
+
+    The rule of ``correspondences``, returned in full so that callers
+    holding many independent map pairs (landmark indices offset per pair)
+    can count conflicts per pair.
+
+    Returns
+    -------
+    uniq : (U, 2) int64 ndarray
+        Distinct candidate correspondences (p, q), sorted by (p, q).
+    keep : (U,) bool ndarray
+        The one-to-one survivors.
+    """
     if len(vertices_p) == 0:
-        return np.empty((0, 2), dtype=np.intp), 0
+        return np.empty((0, 2), dtype=np.int64), np.empty(0, dtype=bool)
     vp, vq = np.ravel(vertices_p).astype(np.int64), np.ravel(vertices_q).astype(np.int64)
     score = np.repeat(log_lr, 3)
     n = int(vq.max()) + 1
@@ -205,14 +227,22 @@ def correspondences(vertices_p, vertices_q, log_lr):
     uniq = np.stack([keys // n, keys % n], axis=1)  # sorted by (p, q), as the keys
     best = np.full(uniq.shape[0], -np.inf)
     np.maximum.at(best, inverse.ravel(), score)
-    order = np.lexsort((uniq[:, 1], uniq[:, 0], -best, -votes))
-    used_p, used_q, keep = set(), set(), []
-    for k in order:  # a few landmarks per declared triangle, not all pairs
-        i, j = int(uniq[k, 0]), int(uniq[k, 1])
-        if i in used_p or j in used_q:
-            continue
-        used_p.add(i)
-        used_q.add(j)
-        keep.append(k)
-    pairs = uniq[np.sort(np.asarray(keep))]
-    return pairs.astype(np.intp), int(uniq.shape[0] - len(keep))
+    rank = np.empty(uniq.shape[0], dtype=np.int64)
+    rank[np.lexsort((uniq[:, 1], uniq[:, 0], -best, -votes))] = np.arange(uniq.shape[0])
+    # Greedy in rank order, in rounds: a candidate ranked first among the
+    # live ones sharing its p and its q is exactly one the sequential greedy
+    # keeps; keeping it kills its rivals. Conflicts are rare, so few rounds.
+    keep = np.zeros(uniq.shape[0], dtype=bool)
+    live = np.ones(uniq.shape[0], dtype=bool)
+    while live.any():
+        first = live & (rank == _first_rank(uniq[:, 0], rank, live)) & (rank == _first_rank(uniq[:, 1], rank, live))
+        keep |= first
+        live &= ~np.isin(uniq[:, 0], uniq[first, 0]) & ~np.isin(uniq[:, 1], uniq[first, 1])
+    return uniq, keep
+
+
+def _first_rank(landmark: np.ndarray, rank: np.ndarray, live: np.ndarray) -> np.ndarray:
+    """For each candidate, the best rank among live candidates of its landmark."""
+    best = np.full(int(landmark.max()) + 1, np.iinfo(np.int64).max)
+    np.minimum.at(best, landmark[live], rank[live])
+    return best[landmark]

@@ -22,8 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .statistic import rotation
-from .triangles import delaunay_edges
+from scipy.spatial import Delaunay
 
 #: Width / height of each map's rectangle.
 DEFAULT_ASPECT = 1.0
@@ -70,10 +69,50 @@ class Scenario:
 
 def sigma_from_snr(points: np.ndarray, snr_db: float) -> tuple[float, float]:
     """σ for a given SNR on the true landmarks; returns ``(sigma, sigma_bar2)``."""
-    edges = delaunay_edges(points)
-    lengths = np.linalg.norm(points[edges[:, 0]] - points[edges[:, 1]], axis=1)
-    sigma_bar2 = float(np.var(lengths, ddof=1))
+    sigma_bar2 = float(edge_length_variance(points[None], [Delaunay(points)])[0])
     return float(np.sqrt(sigma_bar2 / (2.0 * 10.0 ** (snr_db / 10.0)))), sigma_bar2
+
+
+def edge_length_variance(worlds: np.ndarray, triangulations) -> np.ndarray:
+    """Sample variance σ̄² of the Delaunay edge lengths of each of B point sets.
+
+    Parameters
+    ----------
+    worlds : (B, L, 2) ndarray
+    triangulations : sequence of B ``scipy.spatial.Delaunay``
+        One per point set.
+
+    Returns
+    -------
+    (B,) ndarray
+        Each value depends on its own point set only (sums in edge order),
+        so one set alone and the same set in a batch give the same bits.
+    """
+    simplices = np.concatenate([tri.simplices for tri in triangulations])
+    neighbors = np.concatenate([tri.neighbors for tri in triangulations])
+    count = [len(tri.simplices) for tri in triangulations]
+    first = np.repeat(np.cumsum(count) - count, count)
+    # The edge opposite vertex v of simplex s is shared with neighbors[s, v];
+    # the lower-numbered simplex of the pair (or a boundary one) owns it.
+    own = (neighbors == -1) | (neighbors + first[:, None] > np.arange(len(simplices))[:, None])
+    s, v = np.nonzero(own)
+    trial = np.repeat(np.arange(len(count)), count)[s]
+    ends = np.stack([simplices[s, (v + 1) % 3], simplices[s, (v + 2) % 3]], axis=1)
+    d = worlds[trial, ends[:, 0]] - worlds[trial, ends[:, 1]]
+    length = np.sqrt(d[:, 0] ** 2 + d[:, 1] ** 2)
+    B = len(worlds)
+    n_edges = np.bincount(trial, minlength=B)
+    mean = np.bincount(trial, length, B) / n_edges
+    return np.bincount(trial, (length - mean[trial]) ** 2, B) / (n_edges - 1)
+
+
+def rotate(theta, x: np.ndarray) -> np.ndarray:
+    """R(θ) x for points x (..., n, 2), θ broadcasting over leading axes.
+
+    Elementwise, so a batch of maps rotates to the same bits as each map alone.
+    """
+    c, s = np.cos(theta)[..., None], np.sin(theta)[..., None]
+    return np.stack([c * x[..., 0] - s * x[..., 1], s * x[..., 0] + c * x[..., 1]], axis=-1)
 
 
 def make_pair(
@@ -138,7 +177,7 @@ def make_pair(
     theta = float(rng.uniform(-np.pi, np.pi))
     t = rng.uniform(-width, width, size=2)
     p = truth[ids_p] + rng.normal(0.0, sigma, size=(n, 2))
-    q = truth[ids_q] @ rotation(theta).T + t + rng.normal(0.0, sigma, size=(n, 2))
+    q = rotate(np.float64(theta), truth[ids_q]) + t + rng.normal(0.0, sigma, size=(n, 2))
     return Scenario(p, q, ids_p, ids_q, truth, sigma, theta, t, float(snr_db), sigma_bar2)
 
 

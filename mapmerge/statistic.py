@@ -104,22 +104,29 @@ def pairwise_cost(cp: np.ndarray, cq: np.ndarray, cyclic: bool = False):
 def _min_cost(cp, cq, cyclic: bool, pairwise: bool):
     """J* = γ - max over the allowed vertex shifts of √(α² + β²).
 
-    ``pairwise``: every p triangle against every q triangle (matrix
-    products); otherwise row m of ``cp`` against row m of ``cq``.
+    ``pairwise``: every p triangle against every q triangle; otherwise row m
+    of ``cp`` against row m of ``cq``. Leading batch axes broadcast (many
+    independent map pairs at once). Elementwise products rather than matrix
+    products, so a pair's value never depends on what else is in the batch.
     """
-    pc = cp - cp.mean(axis=1, keepdims=True)
-    qc = cq - cq.mean(axis=1, keepdims=True)
-    px, py = pc[..., 0], pc[..., 1]
-    sp, sq = (pc**2).sum(axis=(1, 2)), (qc**2).sum(axis=(1, 2))
-    gamma = 0.5 * (sp[:, None] + sq[None, :] if pairwise else sp + sq)
+    pc = cp - cp.mean(axis=-2, keepdims=True)
+    qc = cq - cq.mean(axis=-2, keepdims=True)
+    sp, sq = (pc**2).sum(axis=(-2, -1)), (qc**2).sum(axis=(-2, -1))
+    # As complex numbers, conj(p̃_v)·q̃_v = -(α_v + iβ_v): one product per vertex.
+    zp, zq = np.empty(pc.shape[:-1], complex), np.empty(qc.shape[:-1], complex)
+    zp.real, zp.imag, zq.real, zq.imag = pc[..., 0], -pc[..., 1], qc[..., 0], qc[..., 1]
+    if pairwise:  # (..., Tp, 1, 3) against (..., 1, Tq, 3)
+        zp, sp = zp[..., :, None, :], sp[..., :, None]
+        zq, sq = zq[..., None, :, :], sq[..., None, :]
+    gamma = 0.5 * (sp + sq)
     best, shift = None, None
     for s in range(3 if cyclic else 1):
-        qs = np.roll(qc, -s, axis=1)
-        qx, qy = qs[..., 0], qs[..., 1]
-        if pairwise:
-            r = np.hypot(px @ qx.T + py @ qy.T, px @ qy.T - py @ qx.T)  # √(α² + β²)
-        else:
-            r = np.hypot(np.sum(px * qx + py * qy, axis=1), np.sum(px * qy - py * qx, axis=1))
+        # Summed vertex by vertex: three broadcast products beat a reduction
+        # over a length-3 axis by far.
+        w = zp[..., 0] * zq[..., s]
+        w += zp[..., 1] * zq[..., (1 + s) % 3]
+        w += zp[..., 2] * zq[..., (2 + s) % 3]
+        r = np.abs(w)  # √(α² + β²)
         if best is None:
             best, shift = r, np.zeros(r.shape, dtype=np.int8)
         else:
