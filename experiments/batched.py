@@ -22,6 +22,7 @@ any chunking, worker count or resume (tested).
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 import pandas as pd
@@ -65,6 +66,7 @@ def run_chunk(root_seed: int, scenario: dict, matcher: dict, start: int, stop: i
     # σ comes from the related world, also for unrelated pairs (make_pair).
     sigma = _sigma(world[:, : 2 * n - c], float(scenario["snr_db"]))
     P, Q, ids_p, ids_q, truth_theta, truth_t = _maps(n, c, width, unrelated, draws, world, sigma)
+    maps = _Maps.build(P, Q, ids_p, ids_q, truth_theta, truth_t, sigma, world, 0 if unrelated else c)
 
     clock = time.perf_counter()
     tri_p, tri_q = _Triangles(P), _Triangles(Q)
@@ -82,9 +84,8 @@ def run_chunk(root_seed: int, scenario: dict, matcher: dict, start: int, stop: i
     is_true = np.all(np.sort(a, axis=1) == np.sort(b, axis=1), axis=1)
     consistent = np.all(a == b, axis=1)
     n_common = _common_triangles(ids_p, ids_q, tri_p, tri_q, 2 * n)
-    n_common_landmarks = 0 if unrelated else c
 
-    columns = []
+    columns, last = [], None
     for rule in matcher["taus"]:
         clock = time.perf_counter()
         if rule == "oracle":
@@ -93,12 +94,14 @@ def run_chunk(root_seed: int, scenario: dict, matcher: dict, start: int, stop: i
             log_tau = np.full(B, resolve_log_tau(rule))
         declared = score >= log_tau[tb]
         row = _counts(tb, is_true, consistent, declared, n_common, B)
-        row.update(_merge_errors(P, Q, ids_p, ids_q, world, sigma, truth_theta, truth_t, n,
-                                 n_common_landmarks, tb[declared], pv[declared], qv[declared],
-                                 score[declared]))
+        if last is None:
+            merged = _merge_errors(maps, tb[declared], pv[declared], qv[declared], score[declared])
+        else:  # only trials whose declared set differs from the previous rule's
+            merged = _merge_changed(maps, tb, pv, qv, score, declared, *last)
+        last = declared, merged
         row = {"trial": trials, "tau": np.full(B, rule, dtype=object), "log_tau": log_tau,
                "sigma": sigma, "n_p": np.full(B, n), "n_q": np.full(B, n),
-               "n_common_landmarks": np.full(B, n_common_landmarks), **row}
+               "n_common_landmarks": np.full(B, maps.n_common), **row, **merged}
         row["time_merge_s"] = np.full(B, (time.perf_counter() - clock) / B)
         row["time_match_s"] = np.full(B, time_match)
         columns.append(row)
@@ -217,13 +220,16 @@ def _pairwise_log_lr(P, Q, vp, vq, sigma, cyclic, block=64):
     """log Λ (B, T, T) of every triangle pair of every trial, ``block`` trials
     at a time (temporaries stay in cache; values are elementwise, so the
     blocking cannot change them)."""
+    # 2σ² as merge_maps computes it from a Python float (pow, not x·x), so
+    # that scores equal the per-trial path's to the bit.
+    two_var = 2.0 * np.array([s**2 for s in sigma.tolist()])
     log_lr = np.empty((len(P), vp.shape[1], vq.shape[1]))
     shift = np.empty(log_lr.shape, dtype=np.int8)
     for a in range(0, len(P), block):
         b = slice(a, a + block)
         rows = np.arange(a, min(a + block, len(P)))[:, None, None]
         cost, shift[b] = _min_cost(P[rows, vp[b]], Q[rows, vq[b]], cyclic, pairwise=True)
-        log_lr[b] = -cost / (2.0 * sigma[b, None, None] ** 2)
+        np.divide(cost, -two_var[b, None, None], out=log_lr[b])  # = -cost / 2σ², bit for bit
     return log_lr, shift
 
 
@@ -263,60 +269,97 @@ def _counts(tb, is_true, consistent, declared, n_common, B) -> dict:
             "unpaired": n_common - tp - md, "order_flips": per_trial(is_true & ~consistent)}
 
 
-def _merge_errors(P, Q, ids_p, ids_q, world, sigma, truth_theta, truth_t, n, n_common_landmarks,
-                  tb, pv, qv, score) -> dict:
+@dataclass(frozen=True)
+class _Maps:
+    """B trials' maps and ground truth, with what every τ rule's evaluation shares."""
+
+    P: np.ndarray
+    Q: np.ndarray
+    ids_p: np.ndarray
+    ids_q: np.ndarray
+    theta: np.ndarray
+    t: np.ndarray
+    sigma: np.ndarray
+    at_p: np.ndarray  # true position of each row of P / of Q (in p's frame)
+    at_q: np.ndarray
+    err_p: np.ndarray  # squared error of each row of P
+    n_common: int  # common landmarks per trial
+
+    @classmethod
+    def build(cls, P, Q, ids_p, ids_q, theta, t, sigma, world, n_common):
+        rows = np.arange(len(world))[:, None]
+        at_p = world[rows, ids_p]
+        return cls(P, Q, ids_p, ids_q, theta, t, sigma, at_p, world[rows, ids_q],
+                   np.sum((P - at_p) ** 2, axis=2), n_common)
+
+    def take(self, trials: np.ndarray) -> "_Maps":
+        return replace(self, **{f.name: getattr(self, f.name)[trials] for f in fields(self)
+                                if f.name != "n_common"})
+
+
+def _merge_changed(maps: _Maps, tb, pv, qv, score, declared, last_declared, last_merged) -> dict:
+    """``_merge_errors`` of the trials whose declared pairs changed; the rest copied."""
+    changed = np.bincount(tb[declared != last_declared], minlength=len(maps.P)) > 0
+    merged = {key: value.copy() for key, value in last_merged.items()}
+    sub = np.flatnonzero(changed)
+    if sub.size:
+        keep = declared & changed[tb]
+        renumber = np.cumsum(changed) - 1
+        part = _merge_errors(maps.take(sub), renumber[tb[keep]], pv[keep], qv[keep], score[keep])
+        for key, value in part.items():
+            merged[key][sub] = value
+    return merged
+
+
+def _merge_errors(maps: _Maps, tb, pv, qv, score) -> dict:
     """Correspondences, n-point alignment and combined-map errors of every trial.
 
     The batched ``merge_at`` + ``metrics.map_errors``: landmark indices are
     offset by ``trial·n`` so one call resolves every trial's conflicts.
     """
-    B = len(P)
+    P, Q = maps.P, maps.Q
+    B, n = P.shape[:2]
     uniq, keep = resolve_correspondences(tb[:, None] * n + pv, tb[:, None] * n + qv, score)
     n_conflicts = np.bincount(uniq[~keep, 0] // n, minlength=B)
     pairs = uniq[keep]
     kt, pi, qi = pairs[:, 0] // n, pairs[:, 0] % n, pairs[:, 1] % n
     K = np.bincount(kt, minlength=B)
     matched = K >= MIN_MATCHED_LANDMARKS
-    correct = np.bincount(kt, ids_p[kt, pi] == ids_q[kt, qi], B).astype(np.int64)
+    correct = np.bincount(kt, maps.ids_p[kt, pi] == maps.ids_q[kt, qi], B).astype(np.int64)
 
     # n-point closed form (statistic.paired_transforms) with per-trial sums.
+    Pk, Qk = P[kt, pi], Q[kt, qi]
     with np.errstate(invalid="ignore", divide="ignore"):
-        p_bar = np.stack([np.bincount(kt, P[kt, pi, d], B) for d in (0, 1)], axis=1) / K[:, None]
-        q_bar = np.stack([np.bincount(kt, Q[kt, qi, d], B) for d in (0, 1)], axis=1) / K[:, None]
-    px, py = (P[kt, pi] - p_bar[kt]).T
-    qx, qy = (Q[kt, qi] - q_bar[kt]).T
+        p_bar = np.stack([np.bincount(kt, Pk[:, d], B) for d in (0, 1)], axis=1) / K[:, None]
+        q_bar = np.stack([np.bincount(kt, Qk[:, d], B) for d in (0, 1)], axis=1) / K[:, None]
+    px, py = (Pk - p_bar[kt]).T
+    qx, qy = (Qk - q_bar[kt]).T
     alpha = -np.bincount(kt, qx * px + qy * py, B)
     beta = -np.bincount(kt, px * qy - py * qx, B)
     theta = np.where(matched, wrap_angle(np.arctan2(-beta, -alpha)), np.nan)
-    cos, sin = np.cos(theta), np.sin(theta)
-    t = q_bar - np.stack([cos * p_bar[:, 0] - sin * p_bar[:, 1], sin * p_bar[:, 0] + cos * p_bar[:, 1]], axis=1)
+    t = q_bar - rotate(theta, p_bar[:, None, :])[:, 0]
 
     # Combined map (15): fused pairs, p-only rows, q-only rows mapped into p.
-    d = Q - t[:, None, :]
-    mapped = np.stack([cos[:, None] * d[..., 0] + sin[:, None] * d[..., 1],
-                       -sin[:, None] * d[..., 0] + cos[:, None] * d[..., 1]], axis=2)
-    rows = np.arange(B)[:, None]
-    err_p = np.sum((P - world[rows, ids_p]) ** 2, axis=2)
-    err_q = np.sum((mapped - world[rows, ids_q]) ** 2, axis=2)
-    mu = 0.5 * (P[kt, pi] + mapped[kt, qi])
-    err_fused = np.bincount(kt, np.sum((mu - world[kt, ids_p[kt, pi]]) ** 2, axis=1), B)
+    mapped = rotate(-theta, Q - t[:, None, :])
+    err_q = np.sum((mapped - maps.at_q) ** 2, axis=2)
+    mu = 0.5 * (Pk + mapped[kt, qi])
+    err_fused = np.bincount(kt, np.sum((mu - maps.at_p[kt, pi]) ** 2, axis=1), B)
     paired_p = np.zeros((B, n), bool)
     paired_q = np.zeros((B, n), bool)
     paired_p[kt, pi] = True
     paired_q[kt, qi] = True
-    n_rows = 2 * n - K
-    sq_err = err_fused + np.where(paired_p, 0.0, err_p).sum(axis=1) + np.where(paired_q, 0.0, err_q).sum(axis=1)
-    rmse = np.sqrt(sq_err / n_rows)
-    rot_err_deg = np.degrees(np.abs(wrap_angle(theta - truth_theta)))
-    trans_err = np.sqrt(np.sum((t - truth_t) ** 2, axis=1))
-    # q-only rows of landmarks p also holds (p's ids are 0..n-1).
-    duplicates = np.sum(~paired_q & (ids_q < n), axis=1)
+    sq_err = err_fused + np.where(paired_p, 0.0, maps.err_p).sum(axis=1) + np.where(paired_q, 0.0, err_q).sum(axis=1)
+    rmse = np.sqrt(sq_err / (2 * n - K))
+    rot_err_deg = np.degrees(np.abs(wrap_angle(theta - maps.theta)))
+    trans_err = np.sqrt(np.sum((t - maps.t) ** 2, axis=1))
+    # q-only rows of landmarks p holds too (p's ids are 0..n-1).
+    duplicates = np.sum(~paired_q & (maps.ids_q < n), axis=1)
     nan = np.where(matched, 0.0, np.nan)
     return {
         "matched": matched, "n_pairs": K, "correct_pairs": correct, "wrong_pairs": K - correct,
-        "missed_pairs": n_common_landmarks - correct, "n_conflicts": n_conflicts,
+        "missed_pairs": maps.n_common - correct, "n_conflicts": n_conflicts,
         "rot_err_deg": rot_err_deg + nan, "trans_err": trans_err + nan, "rmse": rmse + nan,
         "duplicates": np.where(matched, duplicates, 0),
-        "success": matched & (rot_err_deg < 1.0) & (rmse < 2.0 * sigma),
-        "false_merge": matched & (n_common_landmarks == 0),
+        "success": matched & (rot_err_deg < 1.0) & (rmse < 2.0 * maps.sigma),
+        "false_merge": matched & (maps.n_common == 0),
     }

@@ -221,23 +221,32 @@ def resolve_correspondences(vertices_p, vertices_q, log_lr):
     if len(vertices_p) == 0:
         return np.empty((0, 2), dtype=np.int64), np.empty(0, dtype=bool)
     vp, vq = np.ravel(vertices_p).astype(np.int64), np.ravel(vertices_q).astype(np.int64)
-    score = np.repeat(log_lr, 3)
     n = int(vq.max()) + 1
-    keys, inverse, votes = np.unique(vp * n + vq, return_inverse=True, return_counts=True)
-    uniq = np.stack([keys // n, keys % n], axis=1)  # sorted by (p, q), as the keys
-    best = np.full(uniq.shape[0], -np.inf)
-    np.maximum.at(best, inverse.ravel(), score)
-    rank = np.empty(uniq.shape[0], dtype=np.int64)
-    rank[np.lexsort((uniq[:, 1], uniq[:, 0], -best, -votes))] = np.arange(uniq.shape[0])
+    keys = vp * n + vq
+    order = np.argsort(keys, kind="stable")
+    keys = keys[order]
+    start = np.r_[0, np.flatnonzero(keys[1:] != keys[:-1]) + 1]
+    uniq = np.stack([keys[start] // n, keys[start] % n], axis=1)  # sorted by (p, q), as the keys
+    # Only candidates sharing a landmark with another can lose; rank those.
+    contested = np.flatnonzero((np.bincount(uniq[:, 0])[uniq[:, 0]] > 1) | (np.bincount(uniq[:, 1])[uniq[:, 1]] > 1))
+    keep = np.ones(len(uniq), dtype=bool)
+    if contested.size == 0:
+        return uniq, keep
+    votes = np.diff(np.r_[start, keys.size])[contested]
+    best = np.maximum.reduceat(np.repeat(log_lr, 3)[order], start)[contested]
+    cp, cq = uniq[contested, 0], uniq[contested, 1]
+    rank = np.empty(contested.size, dtype=np.int64)
+    rank[np.lexsort((cq, cp, -best, -votes))] = np.arange(contested.size)
     # Greedy in rank order, in rounds: a candidate ranked first among the
     # live ones sharing its p and its q is exactly one the sequential greedy
     # keeps; keeping it kills its rivals. Conflicts are rare, so few rounds.
-    keep = np.zeros(uniq.shape[0], dtype=bool)
-    live = np.ones(uniq.shape[0], dtype=bool)
+    won = np.zeros(contested.size, dtype=bool)
+    live = np.ones(contested.size, dtype=bool)
     while live.any():
-        first = live & (rank == _first_rank(uniq[:, 0], rank, live)) & (rank == _first_rank(uniq[:, 1], rank, live))
-        keep |= first
-        live &= ~np.isin(uniq[:, 0], uniq[first, 0]) & ~np.isin(uniq[:, 1], uniq[first, 1])
+        first = live & (rank == _first_rank(cp, rank, live)) & (rank == _first_rank(cq, rank, live))
+        won |= first
+        live &= ~np.isin(cp, cp[first]) & ~np.isin(cq, cq[first])
+    keep[contested] = won
     return uniq, keep
 
 
