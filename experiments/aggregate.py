@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+import joblib
 import numpy as np
 import pandas as pd
 
@@ -58,17 +59,31 @@ def load_examples(dirs) -> dict[str, pd.DataFrame]:
     return {name: pd.concat(parts, ignore_index=True) for name, parts in found.items()}
 
 
-def load(dirs) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """All trials, and all tentative pairs tagged with their cell."""
-    trials, pairs = [], []
-    for run in find_runs(dirs):
-        t = _with_defaults(pd.read_parquet(run / "trials.parquet"))
-        t = t.merge(pd.read_parquet(run / "timings.parquet"), on=["trial", "tau"], how="left")
-        p = pd.read_parquet(run / "pairs.parquet")
-        cell = t[CELL + ["seed"]].iloc[0]
-        trials.append(t)
-        pairs.append(p.assign(**cell.to_dict()))
-    trials = pd.concat(trials, ignore_index=True)
+def load(dirs, n_jobs: int = 1) -> tuple[pd.DataFrame, dict[tuple, pd.DataFrame]]:
+    """All trials, and every cell's tentative pairs.
+
+    Parameters
+    ----------
+    dirs : sequence of path
+        Run or sweep directories.
+    n_jobs : int
+        Threads reading the runs (Parquet decoding releases the GIL).
+
+    Returns
+    -------
+    trials : DataFrame
+        One row per trial and τ rule, timings joined.
+    pairs : dict
+        Cell (tuple of the ``CELL`` values) -> its pairs from every run of
+        it, with a ``seed`` column; cells in sorted order. Kept per cell, not
+        as one frame with the cell repeated on millions of rows.
+    """
+    runs = joblib.Parallel(n_jobs=n_jobs, prefer="threads")(
+        joblib.delayed(_load_run)(run) for run in find_runs(dirs))
+    by_cell = {}
+    for t, p in runs:
+        by_cell.setdefault(tuple(t[CELL].iloc[0]), []).append(p)
+    trials = pd.concat([t for t, _ in runs], ignore_index=True)
     dup = trials.duplicated(CELL + ["seed", "trial", "tau"])
     if dup.any():
         row = trials[dup].iloc[0]
@@ -76,7 +91,13 @@ def load(dirs) -> tuple[pd.DataFrame, pd.DataFrame]:
             f"trial {row.trial} of cell {row[CELL].to_dict()} (seed {row.seed}) appears in more than one "
             "run; pass run directories that do not overlap (e.g. one n_trials setting per cell)"
         )
-    return trials, pd.concat(pairs, ignore_index=True)
+    return trials, {cell: pd.concat(by_cell[cell], ignore_index=True) for cell in sorted(by_cell)}
+
+
+def _load_run(run: Path) -> tuple[pd.DataFrame, pd.DataFrame]:
+    t = _with_defaults(pd.read_parquet(run / "trials.parquet"))
+    t = t.merge(pd.read_parquet(run / "timings.parquet"), on=["trial", "tau"], how="left")
+    return t, pd.read_parquet(run / "pairs.parquet").assign(seed=t["seed"].iloc[0])
 
 
 def _sample(fpr, tpr, thr):
@@ -86,25 +107,29 @@ def _sample(fpr, tpr, thr):
     return fpr[keep], tpr[keep], thr[keep]
 
 
-def roc_tables(pairs: pd.DataFrame) -> tuple[pd.DataFrame, pd.DataFrame]:
-    rocs, aucs = [], []
-    for cell, g in pairs.groupby(CELL, sort=True):
-        fpr, tpr, thr = metrics.roc_curve(g["label"].to_numpy(), g["score"].to_numpy())
-        head = dict(zip(CELL, cell))
-        f, t, th = _sample(fpr, tpr, thr)
-        rocs.append(pd.DataFrame({**head, "p_fa": f, "p_d": t, "log_tau": th}))
-        aucs.append({
-            **head,
-            "auc": metrics.auc(fpr, tpr),
-            "p_d_at_zero_fa": float(tpr[fpr == 0].max()),
-            "n_trials": int(g.groupby("seed")["trial"].nunique().sum()),
-            "n_pairs": len(g),
-            "n_true": int(g["label"].sum()),
-            "n_order_flips": int((g["label"] & ~g["order_consistent"]).sum()),
-        })
-    if not rocs:  # only methods without triangle scores (baselines)
+def roc_tables(pairs: dict[tuple, pd.DataFrame], n_jobs: int = 1) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Sampled ROC curve and AUC summary of every cell (``pairs`` as from ``load``)."""
+    cells = [(cell, g) for cell, g in pairs.items() if not g.empty]  # baselines have no scores
+    if not cells:
         return pd.DataFrame(columns=CELL + ["p_fa", "p_d", "log_tau"]), pd.DataFrame(columns=CELL + ["auc"])
-    return pd.concat(rocs, ignore_index=True), pd.DataFrame(aucs)
+    done = joblib.Parallel(n_jobs=n_jobs, prefer="threads")(joblib.delayed(_roc)(cell, g) for cell, g in cells)
+    return pd.concat([roc for roc, _ in done], ignore_index=True), pd.DataFrame([row for _, row in done])
+
+
+def _roc(cell: tuple, g: pd.DataFrame) -> tuple[pd.DataFrame, dict]:
+    label, score = g["label"].to_numpy(), g["score"].to_numpy()
+    fpr, tpr, thr = metrics.roc_curve(label, score)
+    head = dict(zip(CELL, cell))
+    f, t, th = _sample(fpr, tpr, thr)
+    return pd.DataFrame({**head, "p_fa": f, "p_d": t, "log_tau": th}), {
+        **head,
+        "auc": metrics.auc(fpr, tpr),
+        "p_d_at_zero_fa": float(tpr[fpr == 0].max()),
+        "n_trials": int(g.drop_duplicates(["seed", "trial"]).shape[0]),
+        "n_pairs": len(g),
+        "n_true": int(label.sum()),
+        "n_order_flips": int((label & ~g["order_consistent"].to_numpy()).sum()),
+    }
 
 
 def _ratio(num, den):
@@ -143,12 +168,12 @@ def timing_table(trials: pd.DataFrame) -> pd.DataFrame:
     return ms.groupby([trials[k] for k in keys]).median().rename("median_ms_per_merge").reset_index()
 
 
-def aggregate(dirs, out) -> dict[str, Path]:
-    """Write roc.csv, auc.csv, table.csv and table.md into ``out``."""
-    trials, pairs = load(dirs)
+def aggregate(dirs, out, n_jobs: int = 1) -> dict[str, Path]:
+    """Write roc.csv, auc.csv, table.csv and table.md into ``out`` (``n_jobs`` threads)."""
+    trials, pairs = load(dirs, n_jobs)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    roc, auc = roc_tables(pairs)
+    roc, auc = roc_tables(pairs, n_jobs)
     table = summary_table(trials)
     paths = {name: out / f"{name}.csv" for name in ("roc", "auc", "table", "timing")}
     roc.to_csv(paths["roc"], index=False, float_format="%.6g")
@@ -182,9 +207,10 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("dirs", nargs="+", help="run or sweep directories")
     parser.add_argument("--out", required=True, help="directory for the tables")
+    parser.add_argument("--n-jobs", type=int, default=2, help="reader threads (default 2)")
     args = parser.parse_args(argv)
     try:
-        paths = aggregate(args.dirs, args.out)
+        paths = aggregate(args.dirs, args.out, args.n_jobs)
     except (ValueError, FileNotFoundError) as exc:
         parser.exit(2, f"error: {exc}\n")
     for name, path in paths.items():

@@ -40,5 +40,5 @@ class AggregateOnMultirunEnd(Callback):
         sweep_dir = Path(config.hydra.sweep.dir)
         runs = [r for r in find_runs([sweep_dir]) if (r / "trials.parquet").stat().st_mtime >= self.started - 1]
         out = Path(config.aggregate_dir) if config.aggregate_dir else sweep_dir / "aggregate"
-        aggregate(runs, out)
+        aggregate(runs, out, n_jobs=config.mc.n_jobs)
         log.info("aggregated %s into %s", sweep_dir, out)

@@ -32,6 +32,8 @@ from pathlib import Path
 import hydra
 import joblib
 import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
 from omegaconf import DictConfig, OmegaConf
 from tqdm.auto import tqdm
 
@@ -46,8 +48,12 @@ register_configs()
 
 def write_parquet_atomic(df: pd.DataFrame, path: Path) -> None:
     """Write a Parquet file so that it either exists complete or not at all."""
+    _write_table_atomic(pa.Table.from_pandas(df, preserve_index=False), path)
+
+
+def _write_table_atomic(table: pa.Table, path: Path) -> None:
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    df.to_parquet(tmp, index=False)
+    pq.write_table(table, tmp)
     os.replace(tmp, path)
 
 
@@ -121,41 +127,54 @@ def run(cfg: DictConfig, output_dir: str | Path) -> Path:
         scenario, n, len(bounds), len(todo), cfg.mc.n_jobs, cfg.mc.backend,
     )
     if todo:
+        # Local workers write their own chunks (no DataFrames shipped back);
+        # dask workers may sit on other machines, so the driver writes theirs.
+        local = cfg.mc.backend == "loky"
         with _backend(cfg.mc):
-            jobs = (joblib.delayed(_chunk_job)(seed, scenario, matcher, a, b) for a, b in todo)
+            jobs = (joblib.delayed(_chunk_job)(seed, scenario, matcher, a, b, stem(a, b) if local else None)
+                    for a, b in todo)
             results = joblib.Parallel(return_as="generator_unordered")(jobs)
             with tqdm(
                 total=sum(b - a for a, b in todo), unit="trial", desc=f"{cfg.name}",
                 disable=not cfg.mc.progress, file=sys.stderr,
             ) as bar:
-                for a, b, trials, pairs in results:
-                    base = stem(a, b)
-                    timings = trials[["trial", "tau", *TIME_COLUMNS]]
-                    write_parquet_atomic(pairs, Path(f"{base}.pairs.parquet"))
-                    write_parquet_atomic(timings, Path(f"{base}.timings.parquet"))
-                    # The trials file last: its presence marks the chunk done.
-                    write_parquet_atomic(trials.drop(columns=list(TIME_COLUMNS)), Path(f"{base}.trials.parquet"))
+                for a, b, frames in results:
+                    if frames is not None:
+                        _write_chunk(stem(a, b), *frames)
                     bar.update(b - a)
 
     cell = {**scenario, "method": cfg.matcher.method, "objective": cfg.matcher.objective,
             "use_cov": cfg.matcher.use_cov, "seed": seed, "cell_key": cell_key(scenario)}
-    parts = {kind: [pd.read_parquet(f"{stem(a, b)}.{kind}.parquet") for a, b in bounds]
-             for kind in ("trials", "pairs", "timings")}
-    trials = pd.concat(parts["trials"], ignore_index=True)
-    trials = pd.concat([pd.DataFrame({k: [v] * len(trials) for k, v in cell.items()}), trials], axis=1)
-    write_parquet_atomic(trials, out / "trials.parquet")
-    write_parquet_atomic(pd.concat(parts["pairs"], ignore_index=True), out / "pairs.parquet")
-    write_parquet_atomic(pd.concat(parts["timings"], ignore_index=True), out / "timings.parquet")
+    # Arrow tables straight through: this runs once per cell while the
+    # workers wait, so it avoids pandas round trips.
+    for kind in ("trials", "pairs", "timings"):
+        table = pa.concat_tables([pq.read_table(f"{stem(a, b)}.{kind}.parquet") for a, b in bounds])
+        if kind == "trials":
+            n_rows = table.num_rows
+            for i, (key, value) in enumerate(cell.items()):
+                table = table.add_column(i, key, pa.array([value] * n_rows))
+        _write_table_atomic(table, out / f"{kind}.parquet")
     if cfg.mc.examples:
         for name, table in example_tables(seed, scenario, matcher, range(cfg.mc.examples)).items():
             write_parquet_atomic(table, out / f"{name}.parquet")
-    log.info("wrote %s (%d rows)", out / "trials.parquet", len(trials))
+    log.info("wrote %s (%d rows)", out / "trials.parquet", n_rows)
     return out / "trials.parquet"
 
 
-def _chunk_job(seed, scenario, matcher, a, b):
-    trials, pairs = run_chunk(seed, scenario, matcher, a, b)
-    return a, b, trials, pairs
+def _chunk_job(seed, scenario, matcher, a, b, base: Path | None):
+    """Run one chunk; write it when ``base`` is given, else return its frames."""
+    frames = run_chunk(seed, scenario, matcher, a, b)
+    if base is None:
+        return a, b, frames
+    _write_chunk(base, *frames)
+    return a, b, None
+
+
+def _write_chunk(base: Path, trials: pd.DataFrame, pairs: pd.DataFrame) -> None:
+    write_parquet_atomic(pairs, Path(f"{base}.pairs.parquet"))
+    write_parquet_atomic(trials[["trial", "tau", *TIME_COLUMNS]], Path(f"{base}.timings.parquet"))
+    # The trials file last: its presence marks the chunk done.
+    write_parquet_atomic(trials.drop(columns=list(TIME_COLUMNS)), Path(f"{base}.trials.parquet"))
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="config")
@@ -193,7 +212,11 @@ def preflight(argv: list[str]) -> None:
                 sweep = parser.parse_overrides(params + overrides)
                 jobs = [list(job) for batch in BasicSweeper.split_arguments(sweep, None) for job in batch]
             for job in jobs:
-                cfg = compose("config", overrides=job, return_hydra_config=True)
+                cfg = None
+                if multirun:
+                    cfg = _set_values(base, parser.parse_overrides([o for o in job if o not in plain]))
+                if cfg is None:
+                    cfg = compose("config", overrides=job, return_hydra_config=True)
                 validate(cfg)
                 launcher = str(cfg.hydra.launcher.get("_target_", ""))
                 if "joblib" in launcher.lower() and cfg.mc.n_jobs != 1:
@@ -206,6 +229,22 @@ def preflight(argv: list[str]) -> None:
     except Exception as exc:  # Hydra/OmegaConf composition errors are multi-line
         text = " ".join(line.strip() for line in str(exc).splitlines() if line.strip())
         raise ConfigError(text) from None
+
+
+def _set_values(base: DictConfig, overrides) -> DictConfig | None:
+    """``base`` with plain ``key=value`` overrides applied, or None when one
+    is anything else (a config group, ``+``/``~``, a bad key or value):
+    composing each of a big sweep's jobs from scratch costs seconds."""
+    if any(o.is_add() or o.is_delete() or o.is_force_add() or o.package is not None
+           or Path(CONF_DIR, *o.key_or_group.split(".")).is_dir() for o in overrides):
+        return None
+    cfg = base.copy()
+    try:
+        for o in overrides:
+            OmegaConf.update(cfg, o.key_or_group, o.value(), merge=False)
+    except Exception:  # let compose produce Hydra's own message
+        return None
+    return cfg
 
 
 def cli() -> None:
