@@ -50,8 +50,11 @@ def load_examples(dirs) -> dict[str, pd.DataFrame]:
     """Example-trial geometry tables of every run, tagged with their cell."""
     found: dict[str, list[pd.DataFrame]] = {}
     for run in find_runs(dirs):
+        paths = sorted(run.glob("example_*.parquet"))
+        if not paths:
+            continue
         cell = _with_defaults(pd.read_parquet(run / "trials.parquet"))[CELL].iloc[0].to_dict()
-        for path in sorted(run.glob("example_*.parquet")):
+        for path in paths:
             table = pd.read_parquet(path)
             # The table's own columns win (its "kind" is p / q / merged / truth).
             found.setdefault(path.stem, []).append(

@@ -114,7 +114,9 @@ def run(cfg: DictConfig, output_dir: str | Path) -> Path:
 
     scenario = OmegaConf.to_container(cfg.scenario)
     matcher = OmegaConf.to_container(cfg.matcher)
-    n, size, seed = cfg.mc.n_trials, cfg.mc.chunk_size, cfg.mc.seed
+    n, seed = cfg.mc.n_trials, cfg.mc.seed
+    # chunk_size is an upper bound: every worker gets at least one chunk.
+    size = min(cfg.mc.chunk_size, -(-n // cfg.mc.n_jobs))
     run_key = _run_key(cfg)
     bounds = [(a, min(a + size, n)) for a in range(0, n, size)]
 

@@ -56,7 +56,7 @@ class MatcherConfig:
 class MCConfig:
     n_trials: int = 200
     n_jobs: int = 2
-    chunk_size: int = 50
+    chunk_size: int = 50  # upper bound: a cell is split into at least n_jobs chunks
     seed: int = 0
     backend: str = "loky"
     # dask.distributed scheduler address; null with backend=dask starts a LocalCluster.
