@@ -38,7 +38,7 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm.auto import tqdm
 
 from .schema import ConfigError, register_configs, validate
-from .trials import TIME_COLUMNS, cell_key, run_chunk
+from .trials import TIME_COLUMNS, cell_key, code_digest, run_chunk
 from .examples import example_tables
 
 log = logging.getLogger(__name__)
@@ -58,11 +58,13 @@ def _write_table_atomic(table: pa.Table, path: Path) -> None:
 
 
 def _run_key(cfg: DictConfig) -> str:
-    """Hash of everything that determines the trials' content."""
+    """Hash of everything that determines the trials' content, the code included
+    (a chunk left by an older version of the library is never reused)."""
     key = {
         "scenario": OmegaConf.to_container(cfg.scenario),
         "matcher": OmegaConf.to_container(cfg.matcher),
         "seed": cfg.mc.seed,
+        "code": code_digest(),
     }
     return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:12]
 

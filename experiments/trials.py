@@ -16,6 +16,7 @@ import functools
 import hashlib
 import json
 import time
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -35,6 +36,18 @@ DATASET_KEYS = ("cut", "source")
 #: Columns whose values depend on the machine's speed, kept out of the
 #: bit-identical result files.
 TIME_COLUMNS = ("time_match_s", "time_merge_s")
+
+
+@functools.cache
+def code_digest() -> str:
+    """Digest of the sources that compute trials (the library and the two
+    trial engines): part of the harness's chunk-cache key."""
+    here = Path(__file__).resolve().parent
+    files = sorted(Path(mm.__file__).resolve().parent.rglob("*.py")) + [here / "trials.py", here / "batched.py"]
+    digest = hashlib.sha256()
+    for path in files:
+        digest.update(path.read_bytes())
+    return digest.hexdigest()
 
 
 def scientific_keys(scenario: dict) -> tuple[str, ...]:

@@ -126,6 +126,15 @@ def test_resume_after_deleting_chunks_is_identical(tmp_path):
     assert {n: _digest(out / n) for n in before} == before
 
 
+def test_chunks_of_other_code_are_not_reused(tmp_path, monkeypatch):
+    out = run(_small(), tmp_path).parent
+    before = set((out / "chunks").glob("*.trials.parquet"))
+    monkeypatch.setattr("experiments.run.code_digest", lambda: "another version of the library")
+    run(_small(), tmp_path)
+    after = set((out / "chunks").glob("*.trials.parquet"))
+    assert len(after - before) == len(before)  # every chunk recomputed under a new key
+
+
 def test_kill_9_then_rerun_matches_uninterrupted(tmp_path):
     args = ["scenario.n_landmarks=100", "mc.n_trials=300", "mc.chunk_size=10", "mc.n_jobs=1",
             "mc.progress=false", "name=kill"]
