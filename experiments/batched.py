@@ -72,7 +72,7 @@ def run_chunk(root_seed: int, scenario: dict, matcher: dict, start: int, stop: i
     tri_p, tri_q = _Triangles(P), _Triangles(Q)
     cyclic = matcher["method"] == "cyclic"
     vp, vq = tri_p.stat_vertices(cyclic), tri_q.stat_vertices(cyclic)
-    log_lr, shift = _pairwise_log_lr(P, Q, vp, vq, sigma, cyclic)
+    log_lr, shift = _pairwise_log_lr(P, Q, vp, vq, tri_p.count, tri_q.count, sigma, cyclic)
     tb, i, j = _assign(log_lr, tri_p.count, tri_q.count, matcher["objective"])
     score, shift = log_lr[tb, i, j], shift[tb, i, j]
     roll = (np.arange(3)[None, :] + shift[:, None].astype(np.intp)) % 3
@@ -196,7 +196,7 @@ class _Triangles:
         self.count = np.array([len(s) for s in simplices])
         self.trial = np.repeat(np.arange(B), self.count)
         flat = np.concatenate(simplices)
-        coords = maps[self.trial[:, None], flat]
+        coords = maps.reshape(-1, 2)[self.trial[:, None] * maps.shape[1] + flat]
         perm = groth_order(coords)
         self.flat = np.take_along_axis(flat, perm, axis=1)
         self._flat_coords = np.take_along_axis(coords, perm[..., None], axis=1)
@@ -216,20 +216,28 @@ class _Triangles:
         return self._pad(ccw, *self.vertices.shape[:2])
 
 
-def _pairwise_log_lr(P, Q, vp, vq, sigma, cyclic, block=64):
-    """log Λ (B, T, T) of every triangle pair of every trial, ``block`` trials
-    at a time (temporaries stay in cache; values are elementwise, so the
-    blocking cannot change them)."""
+def _pairwise_log_lr(P, Q, vp, vq, count_p, count_q, sigma, cyclic, block=64):
+    """log Λ (B, T, T) of every triangle pair of every trial.
+
+    Trials go ``block`` at a time (temporaries stay in cache), grouped by
+    triangle count so that each block is padded only to its own largest
+    map; values are elementwise, so neither can change them. Entries
+    beyond a trial's own triangles are left unset.
+    """
     # 2σ² as merge_maps computes it from a Python float (pow, not x·x), so
     # that scores equal the per-trial path's to the bit.
     two_var = 2.0 * np.array([s**2 for s in sigma.tolist()])
+    flat_p, flat_q = P.reshape(-1, 2), Q.reshape(-1, 2)
     log_lr = np.empty((len(P), vp.shape[1], vq.shape[1]))
     shift = np.empty(log_lr.shape, dtype=np.int8)
+    order = np.lexsort((count_q, count_p))
     for a in range(0, len(P), block):
-        b = slice(a, a + block)
-        rows = np.arange(a, min(a + block, len(P)))[:, None, None]
-        cost, shift[b] = _min_cost(P[rows, vp[b]], Q[rows, vq[b]], cyclic, pairwise=True)
-        np.divide(cost, -two_var[b, None, None], out=log_lr[b])  # = -cost / 2σ², bit for bit
+        trials = order[a:a + block]
+        tp, tq = count_p[trials].max(), count_q[trials].max()
+        rows = trials[:, None, None] * P.shape[1]
+        cost, s = _min_cost(flat_p[rows + vp[trials, :tp]], flat_q[rows + vq[trials, :tq]], cyclic, pairwise=True)
+        log_lr[trials, :tp, :tq] = cost / -two_var[trials, None, None]  # = -cost / 2σ², bit for bit
+        shift[trials, :tp, :tq] = s
     return log_lr, shift
 
 

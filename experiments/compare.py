@@ -74,7 +74,26 @@ def write_tables(out: Path) -> list[Path]:
     table = pd.concat([pd.read_csv(t).merge(pd.read_csv(t.with_name("timing.csv")), on=CELL + ["tau"])
                        for t in tables], ignore_index=True)
     comp = comparison_table(table)
-    return [*save_table(comp, out / "compare"), *success_figure(comp, out)]
+    return [*save_table(comp, out / "compare"), summary(comp, out / "summary.md"), *success_figure(comp, out)]
+
+
+#: Methods in the order the summary lists them: the paper, its variants, the baselines.
+METHOD_ORDER = ["paper", "cyclic", "consensus", "groth", "astroalign"]
+
+
+def summary(comp: pd.DataFrame, path: Path) -> Path:
+    """The README's table: 20-40 dB, methods in ``METHOD_ORDER``, plain column names."""
+    s = comp[comp.snr_db >= 20].copy()
+    s["order"] = s.method.map({m: k for k, m in enumerate(METHOD_ORDER)})
+    s = s.sort_values(["order", "tau", "snr_db"])
+    names = {"method": "method", "tau": "tau", "snr_db": "SNR", "recall_common": "triangle recall",
+             "fp_per_trial": "triangle FP / trial", "landmark_precision": "landmark precision",
+             "landmark_recall": "landmark recall", "success_rate": "merge success",
+             "false_merges": "false merges / 1,000 unrelated", "median_ms_per_merge": "ms per merge"}
+    s = s[list(names)].rename(columns=names)
+    s["SNR"] = s["SNR"].astype(int)
+    path.write_text(s.to_markdown(index=False, floatfmt=".3g", missingval="n/a") + "\n")
+    return path
 
 
 def main(argv=None) -> None:

@@ -97,10 +97,14 @@ def edge_length_variance(worlds: np.ndarray, triangulations) -> np.ndarray:
     own = (neighbors == -1) | (neighbors + first[:, None] > np.arange(len(simplices))[:, None])
     s, v = np.nonzero(own)
     trial = np.repeat(np.arange(len(count)), count)[s]
-    ends = np.stack([simplices[s, (v + 1) % 3], simplices[s, (v + 2) % 3]], axis=1)
-    d = worlds[trial, ends[:, 0]] - worlds[trial, ends[:, 1]]
-    length = np.sqrt(d[:, 0] ** 2 + d[:, 1] ** 2)
-    B = len(worlds)
+    B, L = worlds.shape[:2]
+    # Flat indices: one gather per edge end instead of a 2-D fancy index.
+    flat = simplices.ravel()
+    first_end = trial * L + flat[3 * s + (v + 1) % 3]
+    second_end = trial * L + flat[3 * s + (v + 2) % 3]
+    xs, ys = worlds[..., 0].ravel(), worlds[..., 1].ravel()
+    dx, dy = xs[first_end] - xs[second_end], ys[first_end] - ys[second_end]
+    length = np.sqrt(dx**2 + dy**2)
     n_edges = np.bincount(trial, minlength=B)
     mean = np.bincount(trial, length, B) / n_edges
     return np.bincount(trial, (length - mean[trial]) ** 2, B) / (n_edges - 1)
