@@ -16,10 +16,15 @@ until none is left outside (Groth's iterative rejection).
 ``pip install mapmerge[baselines]``) on the two point lists, coordinates
 scaled so that its pixel tolerance equals ``ASTROALIGN_TOL_SIGMAS`` σ.
 astroalign raises when it finds no transform: that is reported as "no
-match"; a wrong transform is kept and shows up in the errors.
+match"; a wrong transform is kept and shows up in the errors. Its RANSAC
+draws from an unseeded ``np.random.default_rng()``; here it draws from a
+generator seeded by the two maps' bytes instead, so the baseline gives the
+same answer every time it sees the same maps (nothing global is seeded).
 """
 
 from __future__ import annotations
+
+import hashlib
 
 import numpy as np
 
@@ -99,6 +104,9 @@ def astroalign_merge(P, Q, sigma):
     scale = astroalign.PIXEL_TOL / (ASTROALIGN_TOL_SIGMAS * sigma)
     tri_p, tri_q = _triangulate(P), _triangulate(Q)
     empty = np.empty((0, 2), dtype=np.intp)
+    seed = np.frombuffer(hashlib.sha256(P.tobytes() + Q.tobytes()).digest(), dtype=np.uint32)
+    numpy_seen_by_astroalign = astroalign._np
+    astroalign._np = _SeededNumpy(np.random.default_rng(seed))
     try:
         _, (src, dst) = astroalign.find_transform(
             P * scale, Q * scale, max_control_points=max(len(P), len(Q))
@@ -114,8 +122,32 @@ def astroalign_merge(P, Q, sigma):
         first[np.unique(ip, return_index=True)[1]] = True
         first &= np.isin(np.arange(len(iq)), np.unique(iq, return_index=True)[1])
         pairs = np.stack([ip[first], iq[first]], axis=1).astype(np.intp)
+    finally:
+        astroalign._np = numpy_seen_by_astroalign
     return finish(P, Q, sigma, pairs, 0, empty, np.empty(0), np.empty(0, bool), np.nan,
                   tri_p, tri_q, "astroalign")
+
+
+class _SeededNumpy:
+    """numpy as astroalign's module sees it, except that ``random.default_rng()``
+    returns the given generator."""
+
+    def __init__(self, rng: np.random.Generator):
+        self.random = _SeededRandom(rng)
+
+    def __getattr__(self, name):
+        return getattr(np, name)
+
+
+class _SeededRandom:
+    def __init__(self, rng: np.random.Generator):
+        self._rng = rng
+
+    def default_rng(self, seed=None):
+        return self._rng if seed is None else np.random.default_rng(seed)
+
+    def __getattr__(self, name):
+        return getattr(np.random, name)
 
 
 BASELINES = {"groth": groth_merge, "astroalign": astroalign_merge}

@@ -34,8 +34,7 @@ from scipy.optimize import linear_sum_assignment
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import ConvexHull, cKDTree
-from scipy.special import gammaln
-from scipy.stats import chi2
+from scipy.special import chdtri, gammaln
 
 from .matching import correspondences
 from .statistic import _J, _align, mapped_covariance, paired_transforms, rotation, wrap_angle
@@ -63,7 +62,7 @@ GROW_FACTOR = 3.0
 #: True overlaps of tens of landmarks have NFA far below either.
 MATCH_NFA = 1e-6
 #: The χ² quantiles of the gates: 3 vertices (6 coordinates) and 1 landmark.
-GATE_6, GATE_2 = float(chi2.isf(GATE_P, 6)), float(chi2.isf(GATE_P, 2))
+GATE_6, GATE_2 = float(chdtri(6, GATE_P)), float(chdtri(2, GATE_P))
 #: Hypotheses (most inliers first) refitted on their inliers and recounted.
 REFINE = 32
 #: Σ d² margin under which two landmark assignments are indistinguishable
@@ -205,7 +204,7 @@ def _prediction_var(points, alignment):
 
 def reject_outliers(P, Q, pairs, sigma, gate_p=GATE_P):
     """Iterative fit: drop the worst pair outside the χ²₂ gate and refit (Groth's rule)."""
-    gate = chi2.isf(gate_p, 2)
+    gate = chdtri(2, gate_p)
     while pairs.shape[0] >= 3:
         al = _align(P[pairs[:, 0]], Q[pairs[:, 1]], sigma)
         var = 2 * sigma**2 + _prediction_var(P[pairs[:, 0]], al)
