@@ -196,7 +196,9 @@ def save_table(table: pd.DataFrame, stem: Path) -> list[Path]:
     """Write ``stem.csv`` and ``stem.md`` (a Markdown table) side by side."""
     csv, md = stem.with_suffix(".csv"), stem.with_suffix(".md")
     table.to_csv(csv, index=False, float_format="%.6g")
-    md.write_text(table.to_markdown(index=False, floatfmt=".3g") + "\n")
+    # NaN (e.g. no match, nothing to count) prints as "n/a".
+    md.write_text(table.astype(object).where(table.notna(), None)
+                  .to_markdown(index=False, floatfmt=".3g", missingval="n/a") + "\n")
     return [csv, md]
 
 

@@ -172,7 +172,7 @@ def main(argv=None) -> None:
     for n in (10, 20):
         r = per_trial(n)
         rows.append({"benchmark": "per_trial", **r})
-        md.append(f"| {n} | {1e3 * r['trial_s']:.3f} | {1e3 * r['floor_s']:.3f} | {r['ratio']:.1f} | "
+        md.append(f"| {n} | {1e3 * r['trial_s']:.3f} | {1e3 * r['floor_s']:.3f} | {r['ratio']:.2f} | "
                   f"{'yes' if r['ratio'] <= 2 else 'no'} |")
 
     trials = 1000 if args.quick else 10_000

@@ -92,6 +92,7 @@ def summary(comp: pd.DataFrame, path: Path) -> Path:
              "false_merges": "false merges / 1,000 unrelated", "median_ms_per_merge": "ms per merge"}
     s = s[list(names)].rename(columns=names)
     s["SNR"] = s["SNR"].astype(int)
+    s = s.astype(object).where(s.notna(), None)  # NaN prints as "n/a"
     path.write_text(s.to_markdown(index=False, floatfmt=".3g", missingval="n/a") + "\n")
     return path
 

@@ -229,3 +229,17 @@ def test_example_triangle_status_prefers_the_telling_pair():
     common = np.array([[0, 5], [1, 9], [2, 8]])
     status = _triangle_status(4, 0, pairs, is_true, declared, common)
     assert list(status) == ["tp", "unpaired", "md", "other"]
+
+
+def test_readme_includes_are_refreshed_from_results(tmp_path):
+    from experiments.readme import refresh
+
+    (tmp_path / "results").mkdir()
+    (tmp_path / "results" / "t.md").write_text("# Title\n\n## Part\n\n| a |\n|---|\n| 1 |\n![f](f.png)\n")
+    readme = tmp_path / "README.md"
+    readme.write_text("intro\n<!-- include: results/t.md -->\nold numbers\n<!-- end include -->\nrest\n")
+    assert refresh(readme) == ["results/t.md"]
+    text = readme.read_text()
+    assert "old numbers" not in text and "# Title" not in text
+    assert "#### Part" in text and "| 1 |" in text and "![f](results/f.png)" in text
+    assert text.startswith("intro\n") and text.endswith("<!-- end include -->\nrest\n")
