@@ -45,17 +45,34 @@ def supports(scenario: dict, matcher: dict) -> bool:
     return scenario.get("kind", "synthetic") == "synthetic" and matcher["method"] in BATCHED_METHODS
 
 
+#: Triangle pairs held at once (about 32 MB per array of scores): a chunk
+#: of big maps runs in slices of trials that fit.
+MAX_PAIRS = 2**22
+
+
 def run_chunk(root_seed: int, scenario: dict, matcher: dict, start: int, stop: int):
     """Trials ``start..stop-1`` of a cell as (trials, pairs) DataFrames.
 
     Same rows and columns as ``trials.run_chunk`` on the per-trial path.
-    The timing columns hold the chunk's time per trial (matching: the two
-    maps' triangulation, scoring and LP; merging: per τ rule).
+    The timing columns hold the time per trial of the slice of trials run
+    together (matching: the two maps' triangulation, scoring and LP;
+    merging: per τ rule).
     """
-    from .trials import trial_seeds
-
     n, c = _check_scenario(scenario["n_landmarks"], scenario["overlap"], scenario["snr_db"],
                            scenario["aspect"])
+    # At most 2n - 5 triangles per map; trials are independent, so slicing
+    # changes nothing but memory.
+    per_slice = max(1, MAX_PAIRS // max(2 * n - 5, 1) ** 2)
+    parts = [_run_slice(root_seed, scenario, matcher, a, min(a + per_slice, stop), n, c)
+             for a in range(start, stop, per_slice)]
+    if len(parts) == 1:
+        return parts[0]
+    return tuple(pd.concat([p[k] for p in parts], ignore_index=True) for k in (0, 1))
+
+
+def _run_slice(root_seed: int, scenario: dict, matcher: dict, start: int, stop: int, n: int, c: int):
+    from .trials import trial_seeds
+
     unrelated = bool(scenario["unrelated"])
     trials = np.arange(start, stop)
     B = trials.size
@@ -216,14 +233,20 @@ class _Triangles:
         return self._pad(ccw, *self.vertices.shape[:2])
 
 
-def _pairwise_log_lr(P, Q, vp, vq, count_p, count_q, sigma, cyclic, block=64):
+#: Triangle pairs scored per numpy call: small enough that the temporaries
+#: stay in cache (64 trials of 20 landmarks; one trial of a big map).
+BLOCK_PAIRS = 2**16
+
+
+def _pairwise_log_lr(P, Q, vp, vq, count_p, count_q, sigma, cyclic):
     """log Λ (B, T, T) of every triangle pair of every trial.
 
-    Trials go ``block`` at a time (temporaries stay in cache), grouped by
-    triangle count so that each block is padded only to its own largest
-    map; values are elementwise, so neither can change them. Entries
-    beyond a trial's own triangles are left unset.
+    Trials go in blocks of about ``BLOCK_PAIRS`` pairs, grouped by triangle
+    count so that each block is padded only to its own largest map; values
+    are elementwise, so neither can change them. Entries beyond a trial's
+    own triangles are left unset.
     """
+    block = max(1, BLOCK_PAIRS // (vp.shape[1] * vq.shape[1]))
     # 2σ² as merge_maps computes it from a Python float (pow, not x·x), so
     # that scores equal the per-trial path's to the bit.
     two_var = 2.0 * np.array([s**2 for s in sigma.tolist()])

@@ -82,3 +82,14 @@ def test_correspondences_equal_the_sequential_greedy():
         keep, dropped = _sequential_greedy(vp, vq, scores)
         assert [tuple(p) for p in pairs.tolist()] == keep
         assert n_conflicts == dropped
+
+
+def test_big_maps_run_in_slices_with_the_same_results(monkeypatch):
+    scenario = _scenario(40, 0.75, 30.0)
+    matcher = {"method": "paper", "objective": "lr", "taus": ["oracle", "chi2:0.01"]}
+    whole = run_chunk(0, scenario, matcher, 0, 12)
+    monkeypatch.setattr(batched, "MAX_PAIRS", 4 * 75**2)  # 4 trials of 40 landmarks per slice
+    sliced = run_chunk(0, scenario, matcher, 0, 12)
+    for a, b in zip(whole, sliced):
+        timeless = [c for c in a.columns if not c.startswith("time_")]
+        pd.testing.assert_frame_equal(a[timeless], b[timeless], check_exact=True)
