@@ -196,10 +196,14 @@ def save_table(table: pd.DataFrame, stem: Path) -> list[Path]:
     """Write ``stem.csv`` and ``stem.md`` (a Markdown table) side by side."""
     csv, md = stem.with_suffix(".csv"), stem.with_suffix(".md")
     table.to_csv(csv, index=False, float_format="%.6g")
-    # NaN (e.g. no match, nothing to count) prints as "n/a".
-    md.write_text(table.astype(object).where(table.notna(), None)
-                  .to_markdown(index=False, floatfmt=".3g", missingval="n/a") + "\n")
+    md.write_text(markdown(table))
     return [csv, md]
+
+
+def markdown(table: pd.DataFrame) -> str:
+    """A Markdown table, 3 significant digits; NaN (no match, nothing to count) as "n/a"."""
+    return table.astype(object).where(table.notna(), None).to_markdown(
+        index=False, floatfmt=".3g", missingval="n/a") + "\n"
 
 
 def markdown_table(table: pd.DataFrame) -> str:

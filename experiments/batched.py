@@ -31,7 +31,7 @@ from scipy.spatial import Delaunay
 
 from mapmerge.matching import lp_weight, resolve_correspondences, resolve_log_tau
 from mapmerge.merging import MIN_MATCHED_LANDMARKS
-from mapmerge.simulate import _check_scenario, edge_length_variance, rotate
+from mapmerge.simulate import _check_scenario, rotate, sigmas_from_snr
 from mapmerge.statistic import _min_cost, ccw_order, wrap_angle
 from mapmerge.triangles import groth_order
 
@@ -81,7 +81,7 @@ def _run_slice(root_seed: int, scenario: dict, matcher: dict, start: int, stop: 
     width = float(scenario["aspect"]) * height
     world = _truth(n, c, width, height, unrelated, draws["u"])
     # σ comes from the related world, also for unrelated pairs (make_pair).
-    sigma = _sigma(world[:, : 2 * n - c], float(scenario["snr_db"]))
+    sigma, _ = sigmas_from_snr(world[:, : 2 * n - c], float(scenario["snr_db"]))
     P, Q, ids_p, ids_q, truth_theta, truth_t = _maps(n, c, width, unrelated, draws, world, sigma)
     maps = _Maps.build(P, Q, ids_p, ids_q, truth_theta, truth_t, sigma, world, 0 if unrelated else c)
 
@@ -179,12 +179,6 @@ def _truth(n: int, c: int, width: float, height: float, unrelated: bool, u: np.n
     return np.stack([values[:, col_x], values[:, col_y]], axis=2)
 
 
-def _sigma(world: np.ndarray, snr_db: float) -> np.ndarray:
-    """σ per trial from the sample variance of its true Delaunay edge lengths."""
-    sigma_bar2 = edge_length_variance(world, [Delaunay(pts) for pts in world])
-    return np.sqrt(sigma_bar2 / (2.0 * 10.0 ** (snr_db / 10.0)))
-
-
 def _maps(n, c, width, unrelated, draws, world, sigma):
     """Noisy maps p and q (B, n, 2), their row ids and the true (θ, t)."""
     B = len(sigma)
@@ -216,7 +210,7 @@ class _Triangles:
         coords = maps.reshape(-1, 2)[self.trial[:, None] * maps.shape[1] + flat]
         perm = groth_order(coords)
         self.flat = np.take_along_axis(flat, perm, axis=1)
-        self._flat_coords = np.take_along_axis(coords, perm[..., None], axis=1)
+        self._maps = maps
         self.slot = np.arange(len(flat)) - np.repeat(np.cumsum(self.count) - self.count, self.count)
         self.vertices = self._pad(self.flat, B, int(self.count.max()))
 
@@ -229,7 +223,8 @@ class _Triangles:
         """Vertex order of the statistic: Groth, or counter-clockwise for ``cyclic``."""
         if not cyclic:
             return self.vertices
-        ccw = np.take_along_axis(self.flat, ccw_order(self._flat_coords), axis=1)
+        coords = self._maps.reshape(-1, 2)[self.trial[:, None] * self._maps.shape[1] + self.flat]
+        ccw = np.take_along_axis(self.flat, ccw_order(coords), axis=1)
         return self._pad(ccw, *self.vertices.shape[:2])
 
 

@@ -26,7 +26,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from .aggregate import CELL, save_table  # noqa: E402
+from .aggregate import CELL, markdown, save_table  # noqa: E402
 from .figures import STYLE, _save  # noqa: E402
 from .paper import _call  # noqa: E402
 
@@ -92,8 +92,7 @@ def summary(comp: pd.DataFrame, path: Path) -> Path:
              "false_merges": "false merges / 1,000 unrelated", "median_ms_per_merge": "ms per merge"}
     s = s[list(names)].rename(columns=names)
     s["SNR"] = s["SNR"].astype(int)
-    s = s.astype(object).where(s.notna(), None)  # NaN prints as "n/a"
-    path.write_text(s.to_markdown(index=False, floatfmt=".3g", missingval="n/a") + "\n")
+    path.write_text(markdown(s))
     return path
 
 

@@ -69,8 +69,14 @@ class Scenario:
 
 def sigma_from_snr(points: np.ndarray, snr_db: float) -> tuple[float, float]:
     """σ for a given SNR on the true landmarks; returns ``(sigma, sigma_bar2)``."""
-    sigma_bar2 = float(edge_length_variance(points[None], [Delaunay(points)])[0])
-    return float(np.sqrt(sigma_bar2 / (2.0 * 10.0 ** (snr_db / 10.0)))), sigma_bar2
+    sigma, sigma_bar2 = sigmas_from_snr(points[None], snr_db)
+    return float(sigma[0]), float(sigma_bar2[0])
+
+
+def sigmas_from_snr(worlds: np.ndarray, snr_db: float) -> tuple[np.ndarray, np.ndarray]:
+    """``sigma_from_snr`` for B point sets (B, L, 2) at once: (B,) σ and σ̄²."""
+    sigma_bar2 = edge_length_variance(worlds, [Delaunay(pts) for pts in worlds])
+    return np.sqrt(sigma_bar2 / (2.0 * 10.0 ** (snr_db / 10.0))), sigma_bar2
 
 
 def edge_length_variance(worlds: np.ndarray, triangulations) -> np.ndarray:
