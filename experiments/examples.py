@@ -1,7 +1,7 @@
 """Geometry of example trials, as tables, for the paper's Fig. 1 and Fig. 2.
 
-A trial is recomputed from its seed (DESIGN §6), so examples need no state
-from the Monte Carlo run. The first τ rule of the matcher is used.
+A trial is recomputed from its seed, so examples need no state from the
+Monte Carlo run. The first τ rule of the matcher is used.
 """
 
 from __future__ import annotations
@@ -10,8 +10,9 @@ import numpy as np
 import pandas as pd
 
 from mapmerge import metrics
+from mapmerge.merging import get_method, match_stage, merge_at
 
-from .trials import make_trial_pair, merge_trial
+from .trials import make_trials, pair_labels, rule_log_tau
 
 
 def _triangle_status(n_tri, side, triangle_pairs, is_true, declared, common):
@@ -42,10 +43,16 @@ def example_tables(seed: int, scenario: dict, matcher: dict, trials) -> dict[str
         (own frames), ``merged`` (p's frame, with origin) and ``truth``.
     """
     tri_rows, lm_rows = [], []
-    for k in trials:
-        sc = make_trial_pair(seed, scenario, k)
-        _, _, results, _ = merge_trial(sc, matcher)
-        rule, res, _ = results[0]
+    batch, _ = make_trials(seed, scenario, list(trials))
+    method = get_method(matcher["method"])
+    rule = matcher["taus"][0] if method.uses_tau else "none"
+    match = match_stage(batch.p, batch.q, batch.sigma, method.name, matcher.get("objective", "lr"))
+    lp_true = None if match is None else pair_labels(batch, match.tri_p, match.tri_q, match.trial,
+                                                     match.triangle_pairs)[0]
+    merged = merge_at(batch.p, batch.q, batch.sigma, match, rule_log_tau(rule, match, lp_true, len(batch)),
+                      method.name)
+    for b, k in enumerate(trials):
+        sc, res = batch[b], merged.result(b)
         vp, vq = res.tri_p.vertices, res.tri_q.vertices
         is_true, _ = metrics.triangle_labels(sc.ids_p, sc.ids_q, vp, vq, res.triangle_pairs)
         common = metrics.common_triangles(sc.ids_p, sc.ids_q, vp, vq)

@@ -1,13 +1,16 @@
-"""Monte Carlo trials of one grid cell: seeding, one trial, one chunk.
+"""Monte Carlo trials of one grid cell: seeding and one chunk of trials.
 
 Nothing here knows about Hydra: a cell is a plain dict of scientific
 parameters and a matcher dict, so the code runs the same in a joblib worker,
-a dask worker or a test.
+a dask worker or a test. Every stage is the library's, run on the whole
+chunk at once (``mapmerge.simulate.make_pairs``, ``mapmerge.merging``,
+``mapmerge.metrics``); per trial only its random stream, its Delaunay calls
+and its LP run alone.
 
-Seeding (DESIGN §6): trial k of cell c draws from
+Seeding: trial k of cell c draws from
 ``SeedSequence(root_seed, spawn_key=(cell_key(c), k))``, so any trial can be
-recomputed alone and the results do not depend on workers or chunking.
-The cell key hashes the *scenario* only, so every matcher sees the same maps.
+recomputed alone and the results do not depend on workers or chunking. The
+cell key hashes the *scenario* only, so every matcher sees the same maps.
 """
 
 from __future__ import annotations
@@ -23,11 +26,9 @@ import pandas as pd
 
 import mapmerge as mm
 from mapmerge import metrics
-from mapmerge.baselines import BASELINES
 from mapmerge.datasets import victoria_park
-from mapmerge.merging import match_triangles, merge_at
-
-from . import batched
+from mapmerge.merging import get_method, match_stage, merge_at
+from mapmerge.simulate import ScenarioBatch, check_scenario
 
 SCENARIO_KEYS = ("n_landmarks", "overlap", "snr_db", "aspect", "unrelated")
 #: Keys of a real-data scenario (``kind: victoria_park``).
@@ -36,22 +37,28 @@ DATASET_KEYS = ("cut", "source")
 #: Columns whose values depend on the machine's speed, kept out of the
 #: bit-identical result files.
 TIME_COLUMNS = ("time_match_s", "time_merge_s")
+#: Triangle pairs scored at once (about 32 MB per array of scores): a chunk
+#: of big maps runs in slices of trials that fit.
+MAX_PAIRS = 2**22
 
 
 @functools.cache
 def code_digest() -> str:
-    """Digest of the sources that compute trials (the library and the two
-    trial engines): part of the harness's chunk-cache key."""
-    here = Path(__file__).resolve().parent
-    files = sorted(Path(mm.__file__).resolve().parent.rglob("*.py")) + [here / "trials.py", here / "batched.py"]
+    """Digest of the sources that compute trials (the library and this module):
+    part of the harness's chunk-cache key."""
+    files = sorted(Path(mm.__file__).resolve().parent.rglob("*.py")) + [Path(__file__).resolve()]
     digest = hashlib.sha256()
     for path in files:
         digest.update(path.read_bytes())
     return digest.hexdigest()
 
 
+def is_dataset(scenario: dict) -> bool:
+    return scenario.get("kind", "synthetic") == "victoria_park"
+
+
 def scientific_keys(scenario: dict) -> tuple[str, ...]:
-    return DATASET_KEYS if scenario.get("kind", "synthetic") == "victoria_park" else SCENARIO_KEYS
+    return DATASET_KEYS if is_dataset(scenario) else SCENARIO_KEYS
 
 
 def cell_key(scenario: dict) -> int:
@@ -59,10 +66,6 @@ def cell_key(scenario: dict) -> int:
     canon = json.dumps({k: scenario[k] if isinstance(scenario[k], str) else float(scenario[k])
                         for k in scientific_keys(scenario)}, sort_keys=True)
     return int.from_bytes(hashlib.sha256(canon.encode()).digest()[:8], "big") >> 1
-
-
-def trial_seed(root_seed: int, scenario: dict, k: int) -> np.random.SeedSequence:
-    return trial_seeds(root_seed, scenario, [k])[0]
 
 
 def trial_seeds(root_seed: int, scenario: dict, ks) -> list[np.random.SeedSequence]:
@@ -75,121 +78,108 @@ def _victoria_park(cut: int, source: str):
     return victoria_park(cut=cut, source=source)
 
 
-def make_trial_pair(root_seed: int, scenario: dict, k: int):
-    """The map pair of trial k: synthetic (seeded) or the real data set."""
-    if scenario.get("kind", "synthetic") == "victoria_park":
-        return _victoria_park(int(scenario["cut"]), str(scenario["source"]))
-    return mm.simulate.make_pair(
-        n_landmarks=int(scenario["n_landmarks"]),
-        overlap=float(scenario["overlap"]),
-        snr_db=float(scenario["snr_db"]),
-        rng=trial_seed(root_seed, scenario, k),
-        aspect=float(scenario["aspect"]),
-        unrelated=bool(scenario["unrelated"]),
-    )
+def make_trials(root_seed: int, scenario: dict, ks):
+    """The map pairs of trials ``ks`` as a ``ScenarioBatch`` (a data set is its one fixed pair)."""
+    if is_dataset(scenario):
+        sc = _victoria_park(int(scenario["cut"]), str(scenario["source"]))
+        batch = ScenarioBatch(sc.p[None], sc.q[None], sc.ids_p[None], sc.ids_q[None], sc.truth[None],
+                              np.array([sc.sigma]), np.array([sc.theta]), sc.t[None], np.nan, np.array([np.nan]),
+                              np.array([sc.n_common]))
+        return batch, sc
+    batch = mm.simulate.make_pairs(int(scenario["n_landmarks"]), float(scenario["overlap"]),
+                                   float(scenario["snr_db"]), trial_seeds(root_seed, scenario, ks),
+                                   float(scenario["aspect"]), bool(scenario["unrelated"]))
+    return batch, None
 
 
-def resolve_tau(rule: str, is_true: np.ndarray, scores: np.ndarray) -> float:
-    """log τ for a rule: ``"oracle"`` (ground truth, zero FP) or a library form."""
-    if rule == "oracle":
-        return metrics.oracle_log_tau(is_true, scores)
-    return mm.resolve_log_tau(rule)
+def _loosest_tau(taus) -> float | None:
+    """The loosest fixed rule (it gates the sparse large-map path); None with the oracle rule."""
+    if "oracle" in taus or "none" in taus:
+        return None
+    return min(mm.resolve_log_tau(rule) for rule in taus)
 
 
-def merge_trial(sc, matcher: dict):
-    """Run a matcher on one map pair for every τ rule, timing each stage.
-
-    Returns
-    -------
-    match : TriangleMatch or None
-        The LP's tentative pairs (None for baselines, which have no τ and
-        give a single result under the rule ``"none"``).
-    lp_labels : (is_true, order_consistent) of the tentative pairs, or None.
-    results : list of (rule, MergeResult, time_merge_s)
-    time_match : float
-    """
-    method = matcher["method"]
-    start = time.perf_counter()
-    if method in BASELINES:
-        res = BASELINES[method](sc.p, sc.q, sc.sigma)
-        return None, None, [("none", res, time.perf_counter() - start)], 0.0
-    match = match_triangles(sc.p, sc.q, sc.sigma, matcher["objective"], cyclic=method != "paper")
-    time_match = time.perf_counter() - start
-    labels = metrics.triangle_labels(
-        sc.ids_p, sc.ids_q, match.tri_p.vertices, match.tri_q.vertices, match.triangle_pairs
-    )
-    variances = {}
-    if matcher.get("use_cov") and hasattr(sc, "cov_p"):
-        variances = {"var_p": np.trace(sc.cov_p, axis1=1, axis2=2) / 2,
-                     "var_q": np.trace(sc.cov_q, axis1=1, axis2=2) / 2}
-    results = []
-    for rule in matcher["taus"]:
-        start = time.perf_counter()
-        log_tau = resolve_tau(rule, labels[0], match.triangle_log_lr)
-        res = merge_at(sc.p, sc.q, sc.sigma, match, log_tau, method, **variances)
-        results.append((rule, res, time.perf_counter() - start))
-    return match, labels, results, time_match
+def _slice_size(scenario: dict) -> int:
+    if is_dataset(scenario):
+        return 1
+    n, _ = check_scenario(scenario["n_landmarks"], scenario["overlap"], scenario["snr_db"], scenario["aspect"])
+    # At most 2n - 5 triangles per map; trials are independent, so slicing
+    # changes nothing but memory.
+    return max(1, MAX_PAIRS // max(2 * n - 5, 1) ** 2)
 
 
-def run_trial(root_seed: int, scenario: dict, matcher: dict, k: int):
-    """One trial: draw the pair, match once, then evaluate every τ rule.
-
-    Returns
-    -------
-    trial_rows : list of dict
-        One row per τ rule (``"none"`` for baselines): counts, map-level
-        errors, timings.
-    pairs : dict of arrays
-        One entry per tentative triangle pair (τ-independent; empty for
-        baselines).
-    """
-    sc = make_trial_pair(root_seed, scenario, k)
-    match, labels, results, time_match = merge_trial(sc, matcher)
-    tri_p, tri_q = results[0][1].tri_p, results[0][1].tri_q
-    vp, vq = tri_p.vertices, tri_q.vertices
-    n_common = len(metrics.common_triangles(sc.ids_p, sc.ids_q, vp, vq))
-    rows = []
-    for rule, res, time_merge in results:
-        is_true, consistent = metrics.triangle_labels(sc.ids_p, sc.ids_q, vp, vq, res.triangle_pairs)
-        row = {"trial": k, "tau": rule, "log_tau": res.log_tau, "sigma": sc.sigma,
-               "n_p": len(sc.p), "n_q": len(sc.q), "n_common_landmarks": sc.n_common}
-        row.update(metrics.detection_counts(is_true, res.declared, n_common))
-        row["order_flips"] = int(np.sum(is_true & ~consistent))
-        row.update(metrics.map_errors(sc, res))
-        row["false_merge"] = bool(res.matched and sc.n_common == 0)
-        row["time_match_s"] = time_match
-        row["time_merge_s"] = time_merge
-        rows.append(row)
-    if match is None:
-        pairs = {"trial": np.empty(0, np.int64), "score": np.empty(0), "label": np.empty(0, bool),
-                 "order_consistent": np.empty(0, bool)}
-    else:
-        pairs = {
-            "trial": np.full(match.triangle_log_lr.size, k, dtype=np.int64),
-            "score": match.triangle_log_lr,
-            "label": labels[0],
-            "order_consistent": labels[1],
-        }
-    return rows, pairs
-
-
-def run_chunk(root_seed: int, scenario: dict, matcher: dict, start: int, stop: int,
-              batch: bool | None = None):
+def run_chunk(root_seed: int, scenario: dict, matcher: dict, start: int, stop: int):
     """Trials ``start..stop-1`` of a cell as (trials, pairs) DataFrames.
 
-    ``batch`` (default: whenever ``batched.supports`` the cell) runs the
-    chunk on the batched engine, which gives the same results many times
-    faster; ``batch=False`` forces the per-trial path.
+    ``trials``: one row per trial and τ rule (``"none"`` for methods without
+    a threshold): detection counts, map-level errors, timings (the time per
+    trial of the slice of trials run together). ``pairs``: one row per
+    tentative triangle pair of the triangle-LP methods (τ-independent).
     """
-    if batch or (batch is None and batched.supports(scenario, matcher)):
-        return batched.run_chunk(root_seed, scenario, matcher, start, stop)
-    rows, pair_parts = [], []
-    for k in range(start, stop):
-        trial_rows, pairs = run_trial(root_seed, scenario, matcher, k)
-        rows.extend(trial_rows)
-        pair_parts.append(pairs)
-    trials = pd.DataFrame(rows)
-    pairs = pd.DataFrame(
-        {col: np.concatenate([p[col] for p in pair_parts]) for col in pair_parts[0]}
-    )
+    per_slice = _slice_size(scenario)
+    parts = [_run_slice(root_seed, scenario, matcher, np.arange(a, min(a + per_slice, stop)))
+             for a in range(start, stop, per_slice)]
+    if len(parts) == 1:
+        return parts[0]
+    return tuple(pd.concat([p[k] for p in parts], ignore_index=True) for k in (0, 1))
+
+
+def _run_slice(root_seed: int, scenario: dict, matcher: dict, ks: np.ndarray):
+    sc, dataset = make_trials(root_seed, scenario, ks)
+    B = len(sc)
+    method = get_method(matcher["method"])
+    taus = list(matcher["taus"]) if method.uses_tau else ["none"]
+    variances = {}
+    if matcher.get("use_cov") and dataset is not None:
+        variances = {"var_p": (np.trace(dataset.cov_p, axis1=1, axis2=2) / 2)[None],
+                     "var_q": (np.trace(dataset.cov_q, axis1=1, axis2=2) / 2)[None]}
+
+    clock = time.perf_counter()
+    match = match_stage(sc.p, sc.q, sc.sigma, method.name, matcher.get("objective", "lr"), _loosest_tau(taus))
+    time_match = (time.perf_counter() - clock) / B
+    if match is not None:
+        lp_true, lp_consistent = pair_labels(sc, match.tri_p, match.tri_q, match.trial, match.triangle_pairs)
+    columns, n_common = [], None
+    for rule in taus:
+        clock = time.perf_counter()
+        log_tau = rule_log_tau(rule, match, lp_true if match is not None else None, B)
+        merged = merge_at(sc.p, sc.q, sc.sigma, match, log_tau, method.name, **variances)
+        if n_common is None:
+            n_common = metrics.common_triangle_counts(sc.ids_p, sc.ids_q, merged.tri_p, merged.tri_q)
+        is_true, consistent = pair_labels(sc, merged.tri_p, merged.tri_q, merged.tri_trial, merged.triangle_pairs)
+        row = {"trial": ks, "tau": np.full(B, rule, dtype=object), "log_tau": log_tau, "sigma": sc.sigma,
+               "n_p": np.full(B, sc.p.shape[1]), "n_q": np.full(B, sc.q.shape[1]),
+               "n_common_landmarks": sc.n_common,
+               **metrics.detection_counts_batch(merged.tri_trial, is_true, merged.declared, n_common),
+               "order_flips": np.bincount(merged.tri_trial[is_true & ~consistent], minlength=B),
+               **metrics.map_errors_batch(sc, merged)}
+        row["time_match_s"] = np.full(B, time_match)
+        row["time_merge_s"] = np.full(B, (time.perf_counter() - clock) / B)
+        columns.append(row)
+    # Trial-major, rule-minor rows.
+    trials = pd.DataFrame({key: np.stack([col[key] for col in columns], axis=1).ravel() for key in columns[0]})
+    if match is None:
+        pairs = pd.DataFrame({"trial": np.empty(0, np.int64), "score": np.empty(0), "label": np.empty(0, bool),
+                              "order_consistent": np.empty(0, bool)})
+    else:
+        pairs = pd.DataFrame({"trial": ks[match.trial], "score": match.log_lr, "label": lp_true,
+                              "order_consistent": lp_consistent})
     return trials, pairs
+
+
+def rule_log_tau(rule: str, match, lp_true, n_trials: int) -> np.ndarray:
+    """log τ per trial of a τ rule: ``"oracle"`` (ground truth, zero false
+    positives among the tentative pairs), ``"none"`` (NaN, methods without
+    τ) or a library form (``"chi2:P"`` or a log-LR)."""
+    if rule == "none":
+        return np.full(n_trials, np.nan)
+    if rule == "oracle":
+        return metrics.oracle_log_tau_batch(match.trial, lp_true, match.log_lr, n_trials)
+    return np.full(n_trials, mm.resolve_log_tau(rule))
+
+
+def pair_labels(sc, tri_p, tri_q, trial, triangle_pairs):
+    """Truth (is_true, order_consistent) of triangle pairs given by their indices within each map pair."""
+    return metrics.triangle_labels_batch(
+        sc.ids_p, sc.ids_q, trial, tri_p.vertices[tri_p.offsets[trial] + triangle_pairs[:, 0]],
+        tri_q.vertices[tri_q.offsets[trial] + triangle_pairs[:, 1]])

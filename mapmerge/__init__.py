@@ -2,8 +2,15 @@
 
 Implements the closed-form GLRT between Delaunay triangles in Groth order,
 bipartite matching by the assignment LP and the closed-form maximum-likelihood
-combined map of the seed paper, plus the ground truth and metrics to measure
-them. See DESIGN.md for the mathematics and conventions.
+combined map of Jones, Campbell and Tong, "Maximum likelihood fusion of
+stochastic maps" (arXiv:1303.6170), methods that go beyond it, and the
+ground truth and metrics to measure them.
+
+One module per stage: ``triangles``, ``statistic`` (GLRT), ``alignment``,
+``matching`` (LP and driver), ``combining`` (eq. 15), ``consensus``,
+``baselines``, ``result``, ``merging`` (the method registry and
+``merge_maps``), ``simulate``, ``metrics``, ``datasets``. Every stage works
+on a batch of map pairs; the one-pair functions are its batch of one.
 
 >>> import mapmerge as mm
 >>> sc = mm.simulate.make_pair(n_landmarks=100, overlap=0.75, snr_db=40, rng=0)
@@ -11,20 +18,25 @@ them. See DESIGN.md for the mathematics and conventions.
 """
 
 from . import metrics, simulate
+from .alignment import Alignment, align, rotation, wrap_angle
 from .combining import CombinedMap
 from .matching import log_tau_from_chi2, resolve_log_tau
-from .merging import MergeResult, merge_maps
-from .statistic import Alignment, align, glrt, rotation, wrap_angle
+from .merging import METHODS, merge_batch, merge_maps
+from .result import MergeBatch, MergeResult
+from .statistic import glrt
 from .triangles import Triangles, triangulate
 
 __all__ = [
     "Alignment",
     "CombinedMap",
+    "METHODS",
+    "MergeBatch",
     "MergeResult",
     "Triangles",
     "align",
     "glrt",
     "log_tau_from_chi2",
+    "merge_batch",
     "merge_maps",
     "metrics",
     "resolve_log_tau",
@@ -33,4 +45,4 @@ __all__ = [
     "triangulate",
     "wrap_angle",
 ]
-__version__ = "0.1.0"
+__version__ = "0.2.0"

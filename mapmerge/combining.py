@@ -5,7 +5,9 @@ the fused landmarks µ*. The combined map, in map p's frame, is
 
     [ µ* ;  p-only landmarks ;  R(θ*)ᵀ (q-only landmarks - t*) ]
 
-and every row records where it came from.
+and every row records where it came from. ``combine_batch`` builds the
+combined maps of many map pairs at once (ragged rows tagged by trial); a
+pair with no match keeps map p alone.
 """
 
 from __future__ import annotations
@@ -15,7 +17,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .statistic import Alignment, _align, mapped_covariance, rotation
+from .alignment import Alignment, mapped_covariance, rotate
+
+#: Row origins, in the order they appear in a combined map.
+ORIGINS = np.array(["fused", "p", "q"], dtype=object)
+FUSED, ONLY_P, ONLY_Q = 0, 1, 2
 
 
 @dataclass(frozen=True)
@@ -57,52 +63,69 @@ class CombinedMap:
         return cov
 
 
-def combine_maps(P: np.ndarray, Q: np.ndarray, pairs: np.ndarray, sigma: float):
-    """Align on the paired landmarks and build the combined map (15).
+@dataclass(frozen=True)
+class CombinedBatch:
+    """Combined maps of B map pairs as ragged rows.
+
+    Attributes
+    ----------
+    trial : (R,) int ndarray
+        Map pair of each row; rows of one pair are contiguous, fused rows
+        first (in pair order), then p-only, then q-only rows.
+    offsets : (B + 1,) int ndarray
+    points : (R, 2) ndarray
+        In each pair's map-p frame.
+    origin : (R,) int8 ndarray
+        ``FUSED``, ``ONLY_P`` or ``ONLY_Q`` (names in ``ORIGINS``).
+    index_p, index_q : (R,) int ndarray
+        Source landmark index, -1 where there is none.
+    """
+
+    trial: np.ndarray
+    offsets: np.ndarray
+    points: np.ndarray
+    origin: np.ndarray
+    index_p: np.ndarray
+    index_q: np.ndarray
+
+
+def combine_batch(P: np.ndarray, Q: np.ndarray, pair_trial: np.ndarray, pairs: np.ndarray,
+                  matched: np.ndarray, theta: np.ndarray, t: np.ndarray) -> CombinedBatch:
+    """Eq. (15) for B map pairs.
 
     Parameters
     ----------
-    P, Q : (n_p, 2), (n_q, 2) ndarray
-        The two maps, validated.
+    P, Q : (B, n_p, 2), (B, n_q, 2) ndarray
+    pair_trial : (K,) int ndarray
+        Map pair of each correspondence, sorted; only matched pairs' are used.
     pairs : (K, 2) int ndarray
-        One-to-one landmark correspondences (p index, q index), K >= 2.
-    sigma : float
-        Noise standard deviation.
+        Landmark correspondences (p index, q index).
+    matched : (B,) bool ndarray
+        Map pairs with a fit; the others keep map p alone.
+    theta, t : (B,), (B, 2) ndarray
+        The fitted transforms (``q ≈ R(θ) p + t``).
 
     Returns
     -------
-    alignment : Alignment
-    combined : CombinedMap
+    CombinedBatch
     """
-    alignment: Alignment = _align(P[pairs[:, 0]], Q[pairs[:, 1]], sigma)
-    only_p, only_q = _unpaired(P.shape[0], pairs[:, 0]), _unpaired(Q.shape[0], pairs[:, 1])
-    q_in_p = (Q[only_q] - alignment.t) @ rotation(alignment.theta)
-    k, n_p, n_q = pairs.shape[0], only_p.size, only_q.size
-    combined = CombinedMap(
-        points=np.concatenate([alignment.mu, P[only_p], q_in_p]),
-        origin=np.array(["fused"] * k + ["p"] * n_p + ["q"] * n_q, dtype=object),
-        index_p=np.concatenate([pairs[:, 0], only_p, np.full(n_q, -1)]).astype(np.intp),
-        index_q=np.concatenate([pairs[:, 1], np.full(n_p, -1), only_q]).astype(np.intp),
-        sigma=sigma,
-        alignment=alignment,
-    )
-    return alignment, combined
-
-
-def _unpaired(n: int, paired: np.ndarray) -> np.ndarray:
-    mask = np.ones(n, dtype=bool)
-    mask[paired] = False
-    return np.flatnonzero(mask)
-
-
-def p_only_map(P: np.ndarray, sigma: float) -> CombinedMap:
-    """The combined map when nothing matched: map p alone, in its own frame."""
-    n = P.shape[0]
-    return CombinedMap(
-        points=P.copy(),
-        origin=np.array(["p"] * n, dtype=object),
-        index_p=np.arange(n, dtype=np.intp),
-        index_q=np.full(n, -1, dtype=np.intp),
-        sigma=sigma,
-        alignment=None,
-    )
+    B, n_p, n_q = len(P), P.shape[1], Q.shape[1]
+    use = matched[pair_trial]
+    kt, pi, qi = pair_trial[use], pairs[use, 0], pairs[use, 1]
+    mapped = rotate(-theta, Q - t[:, None, :])  # every q row in p's frame
+    paired_p = np.zeros((B, n_p), bool)
+    paired_q = ~matched[:, None] | np.zeros((B, n_q), bool)  # an unmatched pair keeps no q row
+    paired_p[kt, pi] = True
+    paired_q[kt, qi] = True
+    tp_, ip = np.nonzero(~paired_p)
+    tq_, iq = np.nonzero(~paired_q)
+    trial = np.concatenate([kt, tp_, tq_])
+    section = np.concatenate([np.full(kt.size, FUSED), np.full(tp_.size, ONLY_P), np.full(tq_.size, ONLY_Q)])
+    points = np.concatenate([0.5 * (P[kt, pi] + mapped[kt, qi]), P[tp_, ip], mapped[tq_, iq]])
+    index_p = np.concatenate([pi, ip, np.full(iq.size, -1)])
+    index_q = np.concatenate([qi, np.full(ip.size, -1), iq])
+    order = np.argsort(trial, kind="stable")  # sections already in row order within a trial
+    count = np.bincount(trial, minlength=B)
+    return CombinedBatch(trial=trial[order], offsets=np.r_[0, np.cumsum(count)], points=points[order],
+                         origin=section[order].astype(np.int8), index_p=index_p[order].astype(np.intp),
+                         index_q=index_q[order].astype(np.intp))

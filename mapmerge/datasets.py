@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .statistic import rotation, wrap_angle
+from .alignment import rotation, wrap_angle
 
 #: Where the bundled copy of the data lives.
 DATA_DIR = Path(__file__).resolve().parent / "data" / "victoria_park"

@@ -1,5 +1,9 @@
 """Bipartite matching of triangles (paper eq. 14), the τ test, correspondences.
 
+``match_triangles`` is the triangle-matching driver: triangulate a batch of
+map pairs, score their triangle pairs with the GLRT and solve each pair's
+LP. Only the Delaunay calls and the LP run per map pair.
+
 The LP (14) has an integral optimum, so it is solved as an assignment
 problem with ``scipy.optimize.linear_sum_assignment``. A rectangular score
 matrix is the LP with ``N = max(Np, Nq)`` padded by zero-score dummies: the
@@ -14,6 +18,7 @@ which the harness measures.
 from __future__ import annotations
 
 import functools
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -21,6 +26,9 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import min_weight_full_bipartite_matching
 from scipy.spatial import cKDTree
 from scipy.special import chdtri
+
+from .statistic import log_lr_from_cost, min_cost, pairwise_log_lr
+from .triangles import TriangleBatch, triangulate_batch
 
 OBJECTIVES = ("lr", "loglr")
 
@@ -255,3 +263,127 @@ def _first_rank(landmark: np.ndarray, rank: np.ndarray, live: np.ndarray) -> np.
     best = np.full(int(landmark.max()) + 1, np.iinfo(np.int64).max)
     np.minimum.at(best, landmark[live], rank[live])
     return best[landmark]
+
+
+#: Above this many triangle pairs (Tp·Tq, about 250 landmarks per map) the
+#: driver switches to the sparse, gated path when given a finite threshold.
+DENSE_MAX_PAIRS = 250_000
+#: Candidate q triangles kept per p triangle on the sparse path (nearest in
+#: side-length space within the gate).
+SPARSE_NEIGHBOURS = 8
+
+
+@dataclass(frozen=True)
+class TriangleMatch:
+    """Triangles of a batch of map pairs and the tentative triangle pairs.
+
+    Attributes
+    ----------
+    tri_p, tri_q : TriangleBatch
+        Triangles of the B maps p and q (Groth order).
+    trial : (M,) int ndarray
+        Map pair of each tentative pair (sorted).
+    triangle_pairs : (M, 2) int ndarray
+        (p triangle, q triangle), indices within their own map.
+    log_lr : (M,) ndarray
+        Their log Λ.
+    p_vertices, q_vertices : (M, 3) int ndarray
+        Landmarks of the pair's triangles paired vertex by vertex: Groth
+        order for the paper's statistic, the best orientation-preserving
+        correspondence for the order-robust one.
+    """
+
+    tri_p: TriangleBatch
+    tri_q: TriangleBatch
+    trial: np.ndarray
+    triangle_pairs: np.ndarray
+    log_lr: np.ndarray
+    p_vertices: np.ndarray
+    q_vertices: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.tri_p)
+
+
+def match_triangles(P: np.ndarray, Q: np.ndarray, sigma: np.ndarray, objective: str = "lr",
+                    cyclic: bool = False, log_tau: float | None = None, sparse: bool | None = None,
+                    solve_lp: bool = True) -> TriangleMatch:
+    """Triangulate, score the triangle pairs and solve the LP of B map pairs.
+
+    Parameters
+    ----------
+    P, Q : (B, n_p, 2), (B, n_q, 2) ndarray
+        Valid maps (not re-checked).
+    sigma : (B,) ndarray
+        Noise standard deviation of each map pair.
+    objective : {"lr", "loglr"}
+    cyclic : bool
+        Order-robust statistic (best orientation-preserving correspondence).
+    log_tau : float, optional
+        The loosest threshold that will be applied; enables the sparse path.
+    sparse : bool, optional
+        Dense path: every pair is scored and the LP solved exactly. Sparse
+        path (``sparse=True``, or automatically when Tp·Tq >
+        ``DENSE_MAX_PAIRS`` and a finite ``log_tau`` is given): only pairs
+        within the side-length gate of ``log_tau`` (``gate_radius``, at most
+        ``SPARSE_NEIGHBOURS`` per p triangle) are scored and the LP is solved
+        on that sparse graph, so memory grows like n and time like n log n.
+        It declares the same pairs as the dense path unless the neighbour
+        cap, or a pair outside the gate (Λ < τ) competing in the LP, changes
+        the LP's choice.
+    solve_lp : bool
+        With ``False`` the sparse path returns every gated candidate passing
+        ``log_tau`` as tentative pairs (what consensus verification wants:
+        at scale, chance congruences outbid most true pairs in the LP).
+
+    Returns
+    -------
+    TriangleMatch
+    """
+    tri_p, tri_q = triangulate_batch(P), triangulate_batch(Q)
+    vp = tri_p.ccw_vertices() if cyclic else tri_p.vertices
+    vq = tri_q.ccw_vertices() if cyclic else tri_q.vertices
+    finite_tau = log_tau is not None and np.isfinite(log_tau)
+    if sparse is None:
+        sparse = finite_tau and int(np.max(tri_p.count * tri_q.count)) > DENSE_MAX_PAIRS
+    if sparse and not finite_tau:
+        raise ValueError("the sparse path needs a finite threshold tau")
+    if sparse:
+        parts = [_sparse_pairs(tri_p, tri_q, vp, vq, b, float(sigma[b]), objective, cyclic, log_tau, solve_lp)
+                 for b in range(len(tri_p))]
+        trial = np.repeat(np.arange(len(parts)), [len(p[0]) for p in parts])
+        i, j = (np.concatenate([p[0][:, k] for p in parts]) for k in (0, 1))
+        score, shift = np.concatenate([p[1] for p in parts]), np.concatenate([p[2] for p in parts])
+    else:
+        log_lr, shifts = pairwise_log_lr(tri_p, tri_q, vp, vq, sigma, cyclic)
+        trial, i, j = _assign_each(log_lr, tri_p.count, tri_q.count, objective)
+        score, shift = log_lr[trial, i, j], shifts[trial, i, j]
+    roll = (np.arange(3)[None, :] + shift[:, None].astype(np.intp)) % 3
+    gp, gq = tri_p.offsets[trial] + i, tri_q.offsets[trial] + j
+    return TriangleMatch(tri_p, tri_q, trial, np.stack([i, j], axis=1).astype(np.intp), score,
+                         vp[gp], np.take_along_axis(vq[gq], roll, axis=1))
+
+
+def _assign_each(log_lr, count_p, count_q, objective):
+    """The LP (14) of every map pair on its own triangles: (trial, i, j) of all tentative pairs."""
+    weight = lp_weight(log_lr, objective)
+    parts = [linear_sum_assignment(weight[k, : count_p[k], : count_q[k]], maximize=True)
+             for k in range(len(weight))]
+    trial = np.repeat(np.arange(len(parts)), [len(i) for i, _ in parts])
+    return trial, np.concatenate([i for i, _ in parts]), np.concatenate([j for _, j in parts])
+
+
+def _sparse_pairs(tri_p, tri_q, vp, vq, b, sigma, objective, cyclic, log_tau, solve_lp):
+    """Tentative pairs, scores and shifts of map pair ``b`` on the gated sparse graph."""
+    P, Q = tri_p.maps[b], tri_q.maps[b]
+    vp, vq = vp[tri_p.offsets[b]:tri_p.offsets[b + 1]], vq[tri_q.offsets[b]:tri_q.offsets[b + 1]]
+    cand = candidate_pairs(P[vp], Q[vq], sigma, log_tau, SPARSE_NEIGHBOURS)
+    cost, shift = min_cost(P[vp[cand[:, 0]]], Q[vq[cand[:, 1]]], cyclic, pairwise=False)
+    score = log_lr_from_cost(cost, sigma)
+    if solve_lp:
+        chosen = assign_sparse(score, cand, (len(vp), len(vq)), objective)
+        # Both sorted by p index: map the chosen pairs back to their candidate rows.
+        at = np.searchsorted(cand[:, 0] * len(vq) + cand[:, 1], chosen[:, 0] * len(vq) + chosen[:, 1])
+        return chosen, score[at], shift[at]
+    keep = score >= log_tau  # every candidate that can be declared
+    return cand[keep], score[keep], shift[keep]

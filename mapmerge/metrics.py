@@ -1,4 +1,4 @@
-"""Ground-truth labels, detection counts, ROC curves and map-level errors (DESIGN §4).
+"""Ground-truth labels, detection counts, ROC curves and map-level errors.
 
 A tentative triangle pair is *true* when its two triangles hold the same three
 landmark ids (in any order); it is *order-consistent* when the Groth orders
@@ -14,7 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .statistic import wrap_angle
+from .alignment import wrap_angle
+from .combining import ONLY_Q
 
 
 def _sorted_id_keys(ids: np.ndarray, vertices: np.ndarray, n_ids: int) -> np.ndarray:
@@ -45,9 +46,24 @@ def triangle_labels(ids_p, ids_q, vertices_p, vertices_q, triangle_pairs):
     order_consistent : (M,) bool ndarray
         Same ids vertex by vertex (implies ``is_true``).
     """
-    ids_p, ids_q = np.asarray(ids_p), np.asarray(ids_q)
-    a = ids_p[vertices_p[triangle_pairs[:, 0]]]
-    b = ids_q[vertices_q[triangle_pairs[:, 1]]]
+    ids_p, ids_q = np.asarray(ids_p)[None], np.asarray(ids_q)[None]
+    return triangle_labels_batch(ids_p, ids_q, np.zeros(len(triangle_pairs), np.intp),
+                                 vertices_p[triangle_pairs[:, 0]], vertices_q[triangle_pairs[:, 1]])
+
+
+def triangle_labels_batch(ids_p, ids_q, trial, vertices_p, vertices_q):
+    """``triangle_labels`` of the tentative pairs of B map pairs.
+
+    Parameters
+    ----------
+    ids_p, ids_q : (B, n_p), (B, n_q) int ndarray
+    trial : (M,) int ndarray
+        Map pair of each tentative pair.
+    vertices_p, vertices_q : (M, 3) int ndarray
+        Groth-ordered landmarks of each pair's two triangles.
+    """
+    a = ids_p[trial[:, None], vertices_p]
+    b = ids_q[trial[:, None], vertices_q]
     is_true = np.all(np.sort(a, axis=1) == np.sort(b, axis=1), axis=1)
     return is_true, np.all(a == b, axis=1)
 
@@ -69,20 +85,37 @@ def common_triangles(ids_p, ids_q, vertices_p, vertices_q):
     return np.stack([ip[order], iq[order]], axis=1)
 
 
+def common_triangle_counts(ids_p, ids_q, tri_p, tri_q) -> np.ndarray:
+    """Per map pair, the number of ``common_triangles`` (B,), from two ``TriangleBatch``."""
+    n_ids = np.int64(_n_ids(ids_p, ids_q))
+
+    def keys(ids, tri):
+        s = np.sort(ids[tri.trial[:, None], tri.vertices], axis=1).astype(np.int64)
+        return ((tri.trial * n_ids + s[:, 0]) * n_ids + s[:, 1]) * n_ids + s[:, 2]
+
+    both = np.intersect1d(keys(ids_p, tri_p), keys(ids_q, tri_q), assume_unique=True)
+    return np.bincount(both // n_ids**3, minlength=len(ids_p))
+
+
 def detection_counts(is_true, declared, n_common: int) -> dict:
     """TP, FP, MD, TN over tentative pairs, plus ``common`` and ``unpaired``."""
+    out = detection_counts_batch(np.zeros(len(np.ravel(is_true)), np.intp), is_true, declared,
+                                 np.array([n_common]))
+    return {k: int(v[0]) for k, v in out.items()}
+
+
+def detection_counts_batch(trial, is_true, declared, n_common) -> dict:
+    """``detection_counts`` per map pair: (B,) arrays, ``n_common`` (B,) the common triangles."""
     is_true = np.asarray(is_true, dtype=bool)
     declared = np.asarray(declared, dtype=bool)
-    tp = int(np.sum(is_true & declared))
-    md = int(np.sum(is_true & ~declared))
-    return {
-        "tp": tp,
-        "fp": int(np.sum(~is_true & declared)),
-        "md": md,
-        "tn": int(np.sum(~is_true & ~declared)),
-        "common": int(n_common),
-        "unpaired": int(n_common - tp - md),
-    }
+    B = len(n_common)
+
+    def per_trial(mask):
+        return np.bincount(trial[mask], minlength=B)
+
+    tp, md = per_trial(is_true & declared), per_trial(is_true & ~declared)
+    return {"tp": tp, "fp": per_trial(~is_true & declared), "md": md, "tn": per_trial(~is_true & ~declared),
+            "common": np.asarray(n_common), "unpaired": n_common - tp - md}
 
 
 def oracle_log_tau(is_true, scores) -> float:
@@ -92,11 +125,16 @@ def oracle_log_tau(is_true, scores) -> float:
     score >= log τ`` it is the next float above the best false pair's score,
     or ``-inf`` when there is no false pair.
     """
+    scores = np.asarray(scores, dtype=float)
+    return float(oracle_log_tau_batch(np.zeros(scores.size, np.intp), is_true, scores, 1)[0])
+
+
+def oracle_log_tau_batch(trial, is_true, scores, n_trials: int) -> np.ndarray:
+    """``oracle_log_tau`` of each of ``n_trials`` map pairs (the oracle rule, per pair)."""
     is_true = np.asarray(is_true, dtype=bool)
-    false_scores = np.asarray(scores, dtype=float)[~is_true]
-    if false_scores.size == 0:
-        return -np.inf
-    return float(np.nextafter(false_scores.max(), np.inf))
+    best_false = np.full(n_trials, -np.inf)
+    np.maximum.at(best_false, trial[~is_true], scores[~is_true])
+    return np.where(np.isneginf(best_false), -np.inf, np.nextafter(best_false, np.inf))
 
 
 def roc_curve(y_true, y_score):
@@ -148,52 +186,77 @@ def auc(fpr, tpr) -> float:
     return float(np.trapezoid(tpr, fpr))
 
 
-def map_errors(scenario, result, success_deg: float = 1.0, success_rmse_sigmas: float = 2.0) -> dict:
+#: A merge succeeds when it matched, its rotation error is below this many
+#: degrees and the combined map's RMSE below ``SUCCESS_RMSE_SIGMAS`` σ.
+SUCCESS_DEG = 1.0
+SUCCESS_RMSE_SIGMAS = 2.0
+
+
+def map_errors(scenario, result) -> dict:
     """Map-level errors of one merge against the scenario's ground truth.
 
     Parameters
     ----------
-    scenario : Scenario
-        Ground truth (``ids_p``, ``ids_q``, ``truth``, ``theta``, ``t``, ``sigma``).
+    scenario : Scenario or AgentPair
+        Ground truth (``ids_p``, ``ids_q``, ``truth``, ``theta``, ``t``,
+        ``sigma``, ``n_common``).
     result : MergeResult
-    success_deg, success_rmse_sigmas : float
-        A merge succeeds when it matched, its rotation error is below
-        ``success_deg`` degrees and the combined map's RMSE is below
-        ``success_rmse_sigmas · σ``.
 
     Returns
     -------
     dict
-        ``matched``, ``rot_err_deg``, ``trans_err``, ``rmse`` (combined map vs
-        truth in p's frame), ``n_pairs``, ``correct_pairs``, ``wrong_pairs``,
-        ``missed_pairs`` (common landmarks not paired), ``duplicates`` (extra
-        rows of one landmark in the combined map), ``n_conflicts``, ``success``.
+        ``matched``, ``n_pairs``, ``correct_pairs``, ``wrong_pairs``,
+        ``missed_pairs`` (common landmarks not paired), ``n_conflicts``,
+        ``rot_err_deg``, ``trans_err``, ``rmse`` (combined map vs truth in
+        p's frame), ``duplicates`` (q-only rows of landmarks map p holds),
+        ``success`` (see ``SUCCESS_DEG``) and ``false_merge`` (matched maps
+        that share no landmark); NaN errors when there is no match.
     """
-    ids_p, ids_q = scenario.ids_p, scenario.ids_q
-    pairs = result.pairs
-    correct = int(np.sum(ids_p[pairs[:, 0]] == ids_q[pairs[:, 1]])) if pairs.size else 0
-    out = {
-        "matched": bool(result.matched),
-        "n_pairs": int(pairs.shape[0]),
-        "correct_pairs": correct,
-        "wrong_pairs": int(pairs.shape[0] - correct),
-        "missed_pairs": int(scenario.n_common - correct),
-        "n_conflicts": int(result.n_conflicts),
+    c = result.combined
+    origin = np.select([c.origin == "fused", c.origin == "p"], [0, 1], 2)
+    out = errors_batch(
+        np.asarray(scenario.ids_p)[None], np.asarray(scenario.ids_q)[None], np.asarray(scenario.truth)[None],
+        np.array([scenario.theta]), np.asarray(scenario.t)[None], np.array([scenario.sigma]),
+        np.array([scenario.n_common]), np.zeros(len(result.pairs), np.intp), result.pairs,
+        np.array([result.n_conflicts]), np.array([result.matched]), np.array([result.theta]),
+        np.asarray(result.t)[None], np.zeros(len(c.points), np.intp), c.points, origin, c.index_p, c.index_q)
+    return {k: v[0].item() for k, v in out.items()}
+
+
+def map_errors_batch(scenarios, merged) -> dict:
+    """``map_errors`` of B merges at once: a dict of (B,) arrays.
+
+    ``scenarios`` holds the ground truth with a leading batch axis
+    (``simulate.ScenarioBatch``); ``merged`` is a ``MergeBatch``.
+    """
+    c = merged.combined
+    return errors_batch(scenarios.ids_p, scenarios.ids_q, scenarios.truth, scenarios.theta, scenarios.t,
+                        scenarios.sigma, scenarios.n_common, merged.pair_trial, merged.pairs, merged.n_conflicts,
+                        merged.matched, merged.theta, merged.t, c.trial, c.points, c.origin, c.index_p, c.index_q)
+
+
+def errors_batch(ids_p, ids_q, truth, true_theta, true_t, sigma, n_common, pair_trial, pairs, n_conflicts,
+                 matched, theta, t, row_trial, points, origin, index_p, index_q) -> dict:
+    """The map-level errors from plain arrays (see ``map_errors_batch``)."""
+    B = len(ids_p)
+    K = np.bincount(pair_trial, minlength=B)
+    correct = np.bincount(pair_trial, ids_p[pair_trial, pairs[:, 0]] == ids_q[pair_trial, pairs[:, 1]],
+                          B).astype(np.int64)
+    row_ids = np.where(index_p >= 0, ids_p[row_trial, index_p], ids_q[row_trial, index_q])
+    sq_err = np.bincount(row_trial, np.sum((points - truth[row_trial, row_ids]) ** 2, axis=1), B)
+    rmse = np.sqrt(sq_err / np.bincount(row_trial, minlength=B))
+    rot_err_deg = np.degrees(np.abs(wrap_angle(theta - true_theta)))
+    trans_err = np.sqrt(np.sum((t - true_t) ** 2, axis=1))
+    # q-only rows of a landmark map p also holds.
+    n_ids = np.int64(max(ids_p.max(), ids_q.max())) + 1
+    in_p = np.isin(row_trial * n_ids + row_ids, np.arange(B)[:, None] * n_ids + ids_p)
+    duplicates = np.bincount(row_trial, (origin == ONLY_Q) & in_p, B).astype(np.int64)
+    nan = np.where(matched, 0.0, np.nan)
+    return {
+        "matched": matched, "n_pairs": K, "correct_pairs": correct, "wrong_pairs": K - correct,
+        "missed_pairs": n_common - correct, "n_conflicts": np.asarray(n_conflicts, dtype=np.int64),
+        "rot_err_deg": rot_err_deg + nan, "trans_err": trans_err + nan, "rmse": rmse + nan,
+        "duplicates": duplicates,
+        "success": matched & (rot_err_deg < SUCCESS_DEG) & (rmse < SUCCESS_RMSE_SIGMAS * sigma),
+        "false_merge": matched & (n_common == 0),
     }
-    if not result.matched:
-        out.update(rot_err_deg=np.nan, trans_err=np.nan, rmse=np.nan, duplicates=0, success=False)
-        return out
-    rot_err = abs(float(wrap_angle(result.theta - scenario.theta)))
-    combined = result.combined
-    row_ids = np.where(combined.index_p >= 0, ids_p[combined.index_p], ids_q[combined.index_q])
-    err = combined.points - scenario.truth[row_ids]
-    rmse = float(np.sqrt(np.mean(np.sum(err**2, axis=1))))
-    rot_err_deg = float(np.degrees(rot_err))
-    out.update(
-        rot_err_deg=rot_err_deg,
-        trans_err=float(np.linalg.norm(result.t - scenario.t)),
-        rmse=rmse,
-        duplicates=int(row_ids.size - np.count_nonzero(np.bincount(row_ids))),
-        success=bool(rot_err_deg < success_deg and rmse < success_rmse_sigmas * scenario.sigma),
-    )
-    return out

@@ -1,4 +1,4 @@
-"""Synthetic pairs of overlapping landmark maps with ground truth (DESIGN §4).
+"""Synthetic pairs of overlapping landmark maps with ground truth.
 
 Two robots explore neighbouring rectangles of a world with landmarks at unit
 density. Map p covers ``[0, w] x [0, h]``; map q covers the same-size
@@ -13,6 +13,12 @@ N(0, σ²) noise per coordinate, with σ set from the SNR:
 
 σ̄² the sample variance of the edge lengths of the Delaunay graph of all true
 landmarks. Row order of each map is shuffled so indices carry no truth.
+
+``make_pairs`` draws many trials, each from its own seed; ``make_pair`` is
+its single case, so the order of the random draws lives in one place: per
+trial, the uniforms of the landmark blocks (x then y of the common strip,
+p's own part, q's own part[, q's unrelated strip]), two permutations, θ,
+t, and the two maps' normal noise.
 """
 
 from __future__ import annotations
@@ -23,6 +29,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from scipy.spatial import Delaunay
+
+from .alignment import rotate
 
 #: Width / height of each map's rectangle.
 DEFAULT_ASPECT = 1.0
@@ -116,13 +124,32 @@ def edge_length_variance(worlds: np.ndarray, triangulations) -> np.ndarray:
     return np.bincount(trial, (length - mean[trial]) ** 2, B) / (n_edges - 1)
 
 
-def rotate(theta, x: np.ndarray) -> np.ndarray:
-    """R(θ) x for points x (..., n, 2), θ broadcasting over leading axes.
+@dataclass(frozen=True)
+class ScenarioBatch:
+    """B synthetic map pairs of one scenario, stacked along a leading axis.
 
-    Elementwise, so a batch of maps rotates to the same bits as each map alone.
+    The attributes are those of ``Scenario`` with a batch axis in front
+    (``snr_db`` is shared); ``batch[k]`` is trial k's ``Scenario``.
     """
-    c, s = np.cos(theta)[..., None], np.sin(theta)[..., None]
-    return np.stack([c * x[..., 0] - s * x[..., 1], s * x[..., 0] + c * x[..., 1]], axis=-1)
+
+    p: np.ndarray
+    q: np.ndarray
+    ids_p: np.ndarray
+    ids_q: np.ndarray
+    truth: np.ndarray
+    sigma: np.ndarray
+    theta: np.ndarray
+    t: np.ndarray
+    snr_db: float
+    sigma_bar2: np.ndarray
+    n_common: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.p)
+
+    def __getitem__(self, k: int) -> Scenario:
+        return Scenario(self.p[k], self.q[k], self.ids_p[k], self.ids_q[k], self.truth[k], float(self.sigma[k]),
+                        float(self.theta[k]), self.t[k], self.snr_db, float(self.sigma_bar2[k]))
 
 
 def make_pair(
@@ -133,7 +160,7 @@ def make_pair(
     aspect: float = DEFAULT_ASPECT,
     unrelated: bool = False,
 ) -> Scenario:
-    """Draw one overlapping map pair (DESIGN §4).
+    """Draw one overlapping map pair: ``make_pairs`` with a single seed.
 
     Parameters
     ----------
@@ -162,40 +189,76 @@ def make_pair(
     ValueError
         On out-of-range arguments.
     """
-    n, c = _check_scenario(n_landmarks, overlap, snr_db, aspect)
-    rng = np.random.default_rng(rng)
-    # Unit density: each map's rectangle has area n; the strip has area c.
+    return make_pairs(n_landmarks, overlap, snr_db, [rng], aspect, unrelated)[0]
+
+
+def make_pairs(n_landmarks: int, overlap: float, snr_db: float, seeds, aspect: float = DEFAULT_ASPECT,
+               unrelated: bool = False) -> ScenarioBatch:
+    """Draw one map pair per seed (see ``make_pair`` for the arguments).
+
+    Parameters
+    ----------
+    seeds : sequence of None, int, SeedSequence or Generator
+        One per trial; each is normalised with ``np.random.default_rng`` and
+        is the only randomness of its trial, so a trial is the same alone or
+        in any batch.
+
+    Returns
+    -------
+    ScenarioBatch
+    """
+    n, c = check_scenario(n_landmarks, overlap, snr_db, aspect)
+    B = len(seeds)
     height = np.sqrt(n / aspect)
     width = aspect * height
-    strip = width * c / n
-    shift = width - strip
-    common = _uniform(rng, c, shift, width, height)
-    own_p = _uniform(rng, n - c, 0.0, shift, height)
-    own_q = _uniform(rng, n - c, width, width + shift, height)
-    truth = np.concatenate([common, own_p, own_q])
-    ids_p = np.concatenate([np.arange(c), c + np.arange(n - c)])
-    ids_q = np.concatenate([np.arange(c), n + np.arange(n - c)])
-    world = truth
+    u = np.empty((B, 2 * c + 4 * (n - c) + (2 * c if unrelated else 0)))
+    perm_p, perm_q = np.empty((B, n), np.intp), np.empty((B, n), np.intp)
+    u3, z = np.empty((B, 3)), np.empty((B, 2, n, 2))
+    for k, seed in enumerate(seeds):
+        rng = np.random.default_rng(seed)
+        # One call per run of draws: ``uniform(a, b)`` is ``a + (b - a)·random``
+        # and ``normal(0, σ)`` is ``σ·standard_normal``, so scaling afterwards
+        # gives the same bits as drawing block by block.
+        rng.random(out=u[k])
+        perm_p[k] = rng.permutation(n)
+        perm_q[k] = rng.permutation(n)
+        rng.random(out=u3[k])
+        rng.standard_normal(out=z[k].reshape(-1))
+    world = _world(n, c, width, height, unrelated, u)
+    # σ comes from the related world, also for unrelated pairs.
+    sigma, sigma_bar2 = sigmas_from_snr(world[:, : 2 * n - c], float(snr_db))
+    # p's ids are 0..n-1 before shuffling; q's common ids are p's (or fresh ones when unrelated).
+    base_q = np.concatenate([(2 * n - c if unrelated else 0) + np.arange(c), n + np.arange(n - c)])
+    ids_p, ids_q = perm_p, base_q[perm_q]
+    rows = np.arange(B)[:, None]
+    noise = sigma[:, None, None, None] * z
+    theta = -np.pi + (np.pi - -np.pi) * u3[:, 0]
+    t = -width + (width - -width) * u3[:, 1:]
+    p = world[rows, ids_p] + noise[:, 0]
+    q = rotate(theta, world[rows, ids_q]) + t[:, None, :] + noise[:, 1]
+    return ScenarioBatch(p, q, ids_p, ids_q, world, sigma, theta, t, float(snr_db), sigma_bar2,
+                         np.full(B, 0 if unrelated else c))
+
+
+def _world(n: int, c: int, width: float, height: float, unrelated: bool, u: np.ndarray) -> np.ndarray:
+    """True landmarks (B, L, 2) from the uniforms; row = landmark id."""
+    shift = width - width * c / n
+    blocks = [(c, shift, width), (n - c, 0.0, shift), (n - c, width, width + shift)]
     if unrelated:
-        # q's strip gets its own landmarks; σ is still set from the related world.
-        truth = np.concatenate([truth, _uniform(rng, c, shift, width, height)])
-        ids_q[:c] = 2 * n - c + np.arange(c)
-    ids_p = ids_p[rng.permutation(n)]
-    ids_q = ids_q[rng.permutation(n)]
-
-    sigma, sigma_bar2 = sigma_from_snr(world, snr_db)
-    theta = float(rng.uniform(-np.pi, np.pi))
-    t = rng.uniform(-width, width, size=2)
-    p = truth[ids_p] + rng.normal(0.0, sigma, size=(n, 2))
-    q = rotate(np.float64(theta), truth[ids_q]) + t + rng.normal(0.0, sigma, size=(n, 2))
-    return Scenario(p, q, ids_p, ids_q, truth, sigma, theta, t, float(snr_db), sigma_bar2)
+        blocks.append((c, shift, width))
+    lo, span, col_x, col_y, at = [], [], [], [], 0
+    for k, x0, x1 in blocks:  # k uniforms for x in [x0, x1], then k for y in [0, height]
+        lo += [x0] * k + [0.0] * k
+        span += [x1 - x0] * k + [height - 0.0] * k
+        col_x += range(at, at + k)
+        col_y += range(at + k, at + 2 * k)
+        at += 2 * k
+    values = np.asarray(lo) + np.asarray(span) * u
+    return np.stack([values[:, col_x], values[:, col_y]], axis=2)
 
 
-def _uniform(rng: np.random.Generator, k: int, x0: float, x1: float, height: float) -> np.ndarray:
-    return np.column_stack([rng.uniform(x0, x1, k), rng.uniform(0.0, height, k)])
-
-
-def _check_scenario(n_landmarks, overlap, snr_db, aspect) -> tuple[int, int]:
+def check_scenario(n_landmarks, overlap, snr_db, aspect) -> tuple[int, int]:
+    """Validate scenario arguments; return ``(n, c)``: landmarks per map and common landmarks."""
     if isinstance(n_landmarks, bool) or int(n_landmarks) != n_landmarks or n_landmarks < 3:
         raise ValueError(f"n_landmarks must be an integer >= 3, got {n_landmarks!r}")
     if not (np.isfinite(overlap) and 0.0 < overlap <= 1.0):

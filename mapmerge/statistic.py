@@ -1,41 +1,33 @@
-"""Closed-form GLRT between triangles and n-point ML alignment (paper Theorem 1).
+"""Closed-form GLRT between triangles (paper Theorem 1).
 
-Model (paper eq. 2, DESIGN §2): map q sees map p's landmarks through a rigid
-motion, ``q_v = R(θ) µ_v + t + noise`` and ``p_v = µ_v + noise``, all noise
-i.i.d. N(0, σ²) per coordinate. With centred vertices ``p̃_v = p_v - p̄`` and
+Model (paper eq. 2): map q sees map p's landmarks through a rigid motion,
+``q_v = R(θ) µ_v + t + noise`` and ``p_v = µ_v + noise``, all noise i.i.d.
+N(0, σ²) per coordinate. With centred vertices ``p̃_v = p_v - p̄`` and
 ``q̃_v = q_v - q̄`` (the paper's ``Q⁻ y``):
 
     α = -Σ_v q̃_v · p̃_v          β = -Σ_v p̃_v × q̃_v      (a × b = a_x b_y - a_y b_x)
     γ = ½ (Σ ‖p̃_v‖² + Σ ‖q̃_v‖²)
     θ* = atan2(-β, -α)           t* = q̄ - R(θ*) p̄
-    µ*_v = ½ (p_v + R(θ*)ᵀ (q_v - t*))
     J* = γ - √(α² + β²)          log Λ = -J* / (2σ²)
 
 The paper writes θ* = sgn(β)[cos⁻¹(α/√(α²+β²)) - π], which is wrong when
-β = 0 and θ* = π; atan2 is right everywhere. Under H1, J*/σ² is χ² with
-2n - 3 degrees of freedom (3 for a triangle).
+β = 0 and θ* = π; atan2 is right everywhere (``mapmerge.alignment``). Under
+H1, J*/σ² is χ² with 2n - 3 degrees of freedom (3 for a triangle).
+
+Every value is elementwise in the triangle pair, so a pair's score never
+depends on the batch it was computed in.
 """
 
 from __future__ import annotations
 
-import functools
-from dataclasses import dataclass
-
 import numpy as np
 
-from ._validation import check_points, check_sigma
+from ._validation import check_sigma
+from .triangles import TriangleBatch, ccw_order
 
-
-def wrap_angle(theta):
-    """Wrap angles to (-π, π]."""
-    wrapped = np.remainder(np.asarray(theta, dtype=float) + np.pi, 2 * np.pi) - np.pi
-    return np.where(wrapped <= -np.pi, wrapped + 2 * np.pi, wrapped)
-
-
-def rotation(theta: float) -> np.ndarray:
-    """The 2x2 rotation matrix R(θ) = [[cos θ, -sin θ], [sin θ, cos θ]]."""
-    c, s = np.cos(theta), np.sin(theta)
-    return np.array([[c, -s], [s, c]])
+#: Triangle pairs scored per numpy call by ``pairwise_log_lr``: small enough
+#: that the temporaries stay in cache (64 maps of 20 landmarks; one big map).
+BLOCK_PAIRS = 2**16
 
 
 def glrt(coords_p, coords_q, sigma, cyclic: bool = False) -> np.ndarray:
@@ -73,41 +65,39 @@ def glrt(coords_p, coords_q, sigma, cyclic: bool = False) -> np.ndarray:
     if cyclic:
         cp = np.take_along_axis(cp, ccw_order(cp)[..., None], axis=1)
         cq = np.take_along_axis(cq, ccw_order(cq)[..., None], axis=1)
-    cost, _ = pairwise_cost(cp, cq, cyclic)
-    return -cost / (2.0 * sigma**2)
+    cost, _ = min_cost(cp, cq, cyclic, pairwise=True)
+    return log_lr_from_cost(cost, sigma)
 
 
-def ccw_order(coords: np.ndarray) -> np.ndarray:
-    """Permutation (T, 3) putting each triangle's vertices counter-clockwise."""
-    d1, d2 = coords[:, 1] - coords[:, 0], coords[:, 2] - coords[:, 0]
-    clockwise = d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0] < 0
-    return np.where(clockwise[:, None], [0, 2, 1], [0, 1, 2])
+def log_lr_from_cost(cost, sigma):
+    """``log Λ = -J* / (2σ²)``; 2σ² formed from a Python float so that every
+    path (one pair, a batch) gives the same bits."""
+    two_var = 2.0 * np.array([float(s) ** 2 for s in np.ravel(sigma)]).reshape(np.shape(sigma))
+    return cost / -two_var
 
 
-def pairwise_cost(cp: np.ndarray, cq: np.ndarray, cyclic: bool = False):
-    """Minimum cost J* (Tp, Tq) of every triangle pair, as matrix products.
+def min_cost(cp, cq, cyclic: bool = False, pairwise: bool = True):
+    """Minimum cost J* = γ - max over the allowed vertex shifts of √(α² + β²).
 
-    With ``cyclic``, ``cp`` and ``cq`` must already be counter-clockwise
-    (``ccw_order``) for the shifts to cover every orientation-preserving
-    correspondence.
+    Parameters
+    ----------
+    cp, cq : (..., Tp, 3, 2), (..., Tq, 3, 2) ndarray
+        Triangles; with ``cyclic`` both counter-clockwise (``ccw_order``) so
+        that the cyclic shifts cover every orientation-preserving
+        correspondence. Leading batch axes broadcast.
+    cyclic : bool
+        Best of the three cyclic shifts of q's vertices.
+    pairwise : bool
+        Every p triangle against every q triangle; otherwise row m of ``cp``
+        against row m of ``cq``.
 
     Returns
     -------
-    cost : (Tp, Tq) ndarray
-    shift : (Tp, Tq) int8 ndarray
+    cost : ndarray
+        (..., Tp, Tq) when ``pairwise``, else (..., M).
+    shift : int8 ndarray, same shape
         The cyclic shift ``s`` of q's vertices that attains it (q vertex
-        ``(v + s) % 3`` pairs with p vertex ``v``); all zero unless ``cyclic``.
-    """
-    return _min_cost(cp, cq, cyclic, pairwise=True)
-
-
-def _min_cost(cp, cq, cyclic: bool, pairwise: bool):
-    """J* = γ - max over the allowed vertex shifts of √(α² + β²).
-
-    ``pairwise``: every p triangle against every q triangle; otherwise row m
-    of ``cp`` against row m of ``cq``. Leading batch axes broadcast (many
-    independent map pairs at once). Elementwise products rather than matrix
-    products, so a pair's value never depends on what else is in the batch.
+        ``(v + s) % 3`` pairs with p vertex ``v``); zero unless ``cyclic``.
     """
     pc = cp - cp.mean(axis=-2, keepdims=True)
     qc = cq - cq.mean(axis=-2, keepdims=True)
@@ -137,170 +127,50 @@ def _min_cost(cp, cq, cyclic: bool, pairwise: bool):
     return np.maximum(gamma - best, 0.0), shift
 
 
-def paired_transforms(coords_p, coords_q):
-    """θ*, t* and J* for row-wise paired point sets.
+def pairwise_log_lr(tri_p: TriangleBatch, tri_q: TriangleBatch, vp: np.ndarray, vq: np.ndarray,
+                    sigma: np.ndarray, cyclic: bool = False):
+    """log Λ of every triangle pair of every map pair of a batch.
 
     Parameters
     ----------
-    coords_p, coords_q : (M, n, 2) ndarray
-        ``coords_p[m]`` is paired with ``coords_q[m]`` vertex by vertex.
+    tri_p, tri_q : TriangleBatch
+        Triangles of the B maps p and the B maps q.
+    vp, vq : (Sp, 3), (Sq, 3) int ndarray
+        Their vertices in the statistic's order (Groth, or counter-clockwise
+        for ``cyclic``).
+    sigma : (B,) ndarray
+    cyclic : bool
 
     Returns
     -------
-    theta : (M,) ndarray
-    t : (M, 2) ndarray
-    cost : (M,) ndarray
-        The minimum of eq. (5), computed as a residual (no cancellation).
+    log_lr : (B, Tp_max, Tq_max) ndarray
+        Entries beyond a map's own triangles are -inf.
+    shift : (B, Tp_max, Tq_max) int8 ndarray
+
+    Map pairs go in blocks of about ``BLOCK_PAIRS`` triangle pairs, grouped by
+    triangle count so that each block is padded only to its own largest
+    map; values are elementwise, so neither changes them.
     """
-    cp = np.asarray(coords_p, dtype=float)
-    cq = np.asarray(coords_q, dtype=float)
-    p_bar = cp.mean(axis=1)
-    q_bar = cq.mean(axis=1)
-    px, py = (cp - p_bar[:, None, :]).transpose(2, 0, 1)
-    qx, qy = (cq - q_bar[:, None, :]).transpose(2, 0, 1)
-    alpha = -(qx * px + qy * py).sum(axis=1)
-    beta = -(px * qy - py * qx).sum(axis=1)
-    theta = wrap_angle(np.arctan2(-beta, -alpha))
-    c, s = np.cos(theta), np.sin(theta)
-    t = q_bar - np.stack([c * p_bar[:, 0] - s * p_bar[:, 1], s * p_bar[:, 0] + c * p_bar[:, 1]], axis=1)
-    rx = c[:, None] * px - s[:, None] * py - qx
-    ry = s[:, None] * px + c[:, None] * py - qy
-    # Optimal µ is the midpoint, so each vertex leaves half its squared gap.
-    cost = 0.5 * (rx**2 + ry**2).sum(axis=1)
-    return theta, t, cost
-
-
-def paired_cost(cp: np.ndarray, cq: np.ndarray, cyclic: bool = False):
-    """J* of row-paired triangles, and the best cyclic shift of q (see pairwise_cost)."""
-    return _min_cost(cp, cq, cyclic, pairwise=False)
-
-
-@dataclass(frozen=True)
-class Alignment:
-    """ML alignment of paired landmarks (Theorem 1 for n points).
-
-    Attributes
-    ----------
-    theta : float
-        Rotation θ* of map q relative to map p, in (-π, π].
-    t : (2,) ndarray
-        Translation t*, so that ``q ≈ R(θ*) p + t*``.
-    mu : (n, 2) ndarray
-        ML landmark positions µ* in map p's frame.
-    cost : float
-        Minimum of eq. (5), J* >= 0.
-    log_lr : float
-        ``-J* / (2σ²)``.
-    dof : int
-        ``2n - 3``: degrees of freedom of ``J*/σ²`` under H1.
-    sigma : float
-    cov : (3, 3) ndarray
-        Covariance of ``(θ*, t*_x, t*_y)``: inverse Fisher information with
-        the landmarks µ profiled out (Cramér-Rao bound, evaluated at µ*).
-        Computed on first use.
-    mu_cov : (n, 2, 2) ndarray
-        Covariance of each fused landmark µ*_v (computed on first use).
-    """
-
-    theta: float
-    t: np.ndarray
-    mu: np.ndarray
-    cost: float
-    log_lr: float
-    dof: int
-    sigma: float
-
-    @functools.cached_property
-    def _covariances(self):
-        return transform_covariance(self.mu, self.theta, self.sigma)
-
-    @property
-    def cov(self) -> np.ndarray:
-        return self._covariances[0]
-
-    @property
-    def mu_cov(self) -> np.ndarray:
-        return self._covariances[1]
-
-
-#: J = [[0, -1], [1, 0]]: dR/dθ = R J.
-_J = np.array([[0.0, -1.0], [1.0, 0.0]])
-
-
-def transform_covariance(mu: np.ndarray, theta: float, sigma: float):
-    """Covariance of (θ, t) and of each µ_v for n paired landmarks.
-
-    The Fisher information of eq. (5) in (θ, t, µ) has a 2x2 block 2I/σ² per
-    landmark; eliminating µ leaves ``(1/2σ²) [[Σ‖µ‖², bᵀ], [b, n I]]`` for
-    (θ, t) with ``b = R J Σµ``. The µ_v block of the inverse is
-    ``σ²/2 I + ¼ [Jµ_v, Rᵀ] Σ_θt [Jµ_v, Rᵀ]ᵀ``.
-    """
-    R = rotation(theta)
-    n = mu.shape[0]
-    b = R @ _J @ mu.sum(axis=0)
-    info = np.empty((3, 3))
-    info[0, 0] = np.sum(mu**2)
-    info[0, 1:] = info[1:, 0] = b
-    info[1:, 1:] = n * np.eye(2)
-    cov = 2.0 * sigma**2 * np.linalg.inv(info)
-    G = np.concatenate([(mu @ _J.T)[:, :, None], np.broadcast_to(R.T, (n, 2, 2))], axis=2)
-    mu_cov = 0.5 * sigma**2 * np.eye(2) + 0.25 * G @ cov @ G.transpose(0, 2, 1)
-    return cov, mu_cov
-
-
-def mapped_covariance(x: np.ndarray, theta: float, cov: np.ndarray, var) -> np.ndarray:
-    """Covariance (m, 2, 2) of q landmarks mapped into p's frame, x = Rᵀ(q - t).
-
-    ``var`` is the landmarks' own variance per coordinate (a scalar, or one
-    per landmark); ``cov`` the (θ, t) covariance of the transform.
-    """
-    G = np.concatenate([(-(x @ _J.T))[:, :, None], np.broadcast_to(-rotation(theta).T, (x.shape[0], 2, 2))], axis=2)
-    own = np.broadcast_to(np.asarray(var, dtype=float), (x.shape[0],))[:, None, None] * np.eye(2)
-    return own + G @ cov @ G.transpose(0, 2, 1)
-
-
-def align(P, Q, sigma=1.0) -> Alignment:
-    """Closed-form ML rotation, translation and landmarks for paired points.
-
-    Parameters
-    ----------
-    P, Q : (n, 2) array_like
-        Row k of ``P`` and row k of ``Q`` are the same landmark seen in map p
-        and map q; n >= 2.
-    sigma : float, default 1.0
-        Per-coordinate noise standard deviation, > 0 (scales ``log_lr`` only).
-
-    Returns
-    -------
-    Alignment
-
-    Raises
-    ------
-    ValueError
-        On NaN/inf, wrong or mismatched shapes, n < 2 or ``sigma <= 0``.
-    """
-    P = check_points(P, "P", min_points=2, geometry=False)
-    Q = check_points(Q, "Q", min_points=2, geometry=False)
-    if P.shape != Q.shape:
-        raise ValueError(f"P and Q must have the same shape, got {P.shape} and {Q.shape}")
-    sigma = check_sigma(sigma)
-    return _align(P, Q, sigma)
-
-
-def _align(P: np.ndarray, Q: np.ndarray, sigma: float) -> Alignment:
-    theta, t, cost = paired_transforms(P[None], Q[None])
-    theta, t, cost = float(theta[0]), t[0], float(cost[0])
-    rot = rotation(theta)
-    mu = 0.5 * (P + (Q - t) @ rot)  # (Q - t) @ R = rows of Rᵀ (q - t)
-    return Alignment(
-        theta=theta,
-        t=t,
-        mu=mu,
-        cost=cost,
-        log_lr=-cost / (2.0 * sigma**2),
-        dof=2 * P.shape[0] - 3,
-        sigma=sigma,
-    )
+    pad_p, pad_q = tri_p.padded(vp), tri_q.padded(vq)
+    count_p, count_q = tri_p.count, tri_q.count
+    B = len(tri_p)
+    block = max(1, BLOCK_PAIRS // max(pad_p.shape[1] * pad_q.shape[1], 1))
+    flat_p, flat_q = tri_p.maps.reshape(-1, 2), tri_q.maps.reshape(-1, 2)
+    n_p, n_q = tri_p.maps.shape[1], tri_q.maps.shape[1]
+    # Padding scores -inf: Λ = 0, never chosen over a real pair's Λ > 0 and
+    # never overflows when exponentiated.
+    log_lr = np.full((B, pad_p.shape[1], pad_q.shape[1]), -np.inf)
+    shift = np.zeros(log_lr.shape, dtype=np.int8)
+    order = np.lexsort((count_q, count_p))
+    for a in range(0, B, block):
+        trials = order[a:a + block]
+        tp, tq = count_p[trials].max(), count_q[trials].max()
+        cp = flat_p[trials[:, None, None] * n_p + pad_p[trials, :tp]]
+        cq = flat_q[trials[:, None, None] * n_q + pad_q[trials, :tq]]
+        cost, s = min_cost(cp, cq, cyclic, pairwise=True)
+        log_lr[trials, :tp, :tq] = log_lr_from_cost(cost, sigma[trials][:, None, None])
+        shift[trials, :tp, :tq] = s
+    return log_lr, shift
 
 
 def _check_triangles(coords, name: str) -> np.ndarray:

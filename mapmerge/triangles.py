@@ -1,4 +1,4 @@
-"""Delaunay triangles of a landmark map, vertices in Groth order.
+"""Delaunay triangles of landmark maps, vertices in Groth order.
 
 Groth (1986) orders a triangle's vertices by its side lengths so that the
 same three landmarks get the same order in any rotated and translated copy:
@@ -8,6 +8,11 @@ vertices by the length of the side *opposite* them gives (v3, v1, v2).
 
 Near-isosceles triangles swap order under small noise. That is a real
 failure mode of the paper's method and is deliberately not hidden here.
+
+Maps come in batches: ``triangulate_batch`` takes B maps of equal size and
+returns their triangles as one ragged array (triangles of map b are rows
+``offsets[b]:offsets[b + 1]``); ``triangulate`` is the batch of one. Only
+the Delaunay call itself runs per map.
 """
 
 from __future__ import annotations
@@ -39,6 +44,65 @@ class Triangles:
         return self.vertices.shape[0]
 
 
+@dataclass(frozen=True)
+class TriangleBatch:
+    """Triangles of B maps as one ragged array.
+
+    Attributes
+    ----------
+    maps : (B, n, 2) ndarray
+        The triangulated maps.
+    vertices : (S, 3) int ndarray
+        Landmark indices (into each triangle's own map), Groth order.
+    trial : (S,) int ndarray
+        Map of each triangle; triangles of one map are contiguous.
+    offsets : (B + 1,) int ndarray
+        Map b's triangles are rows ``offsets[b]:offsets[b + 1]``.
+    """
+
+    maps: np.ndarray
+    vertices: np.ndarray
+    trial: np.ndarray
+    offsets: np.ndarray
+
+    def __len__(self) -> int:
+        return self.offsets.size - 1
+
+    @property
+    def count(self) -> np.ndarray:
+        """Triangles per map, (B,)."""
+        return np.diff(self.offsets)
+
+    @property
+    def slot(self) -> np.ndarray:
+        """Index of each triangle within its own map, (S,)."""
+        return np.arange(self.trial.size) - self.offsets[self.trial]
+
+    def flat_vertices(self, vertices: np.ndarray | None = None) -> np.ndarray:
+        """Row indices into ``maps.reshape(-1, 2)`` of each vertex, (S, 3)."""
+        v = self.vertices if vertices is None else vertices
+        return self.trial[:, None] * self.maps.shape[1] + v
+
+    def coords(self, vertices: np.ndarray | None = None) -> np.ndarray:
+        """Vertex coordinates (S, 3, 2), in the order of ``vertices`` (default Groth)."""
+        return self.maps.reshape(-1, 2)[self.flat_vertices(vertices)]
+
+    def ccw_vertices(self) -> np.ndarray:
+        """Vertices put counter-clockwise (``ccw_order``), (S, 3)."""
+        return np.take_along_axis(self.vertices, ccw_order(self.coords()), axis=1)
+
+    def padded(self, vertices: np.ndarray | None = None) -> np.ndarray:
+        """Vertices as (B, T_max, 3); rows past a map's own triangles point at landmark 0."""
+        v = self.vertices if vertices is None else vertices
+        out = np.zeros((len(self), int(self.count.max(initial=0)), 3), dtype=np.intp)
+        out[self.trial, self.slot] = v
+        return out
+
+    def __getitem__(self, b: int) -> Triangles:
+        vertices = self.vertices[self.offsets[b]:self.offsets[b + 1]]
+        return Triangles(vertices=vertices, coords=self.maps[b][vertices])
+
+
 def groth_order(coords: np.ndarray) -> np.ndarray:
     """Permutation putting each triangle's vertices in Groth order.
 
@@ -63,6 +127,13 @@ def groth_order(coords: np.ndarray) -> np.ndarray:
     return by_opposite[:, [1, 2, 0]]
 
 
+def ccw_order(coords: np.ndarray) -> np.ndarray:
+    """Permutation (T, 3) putting each triangle's vertices counter-clockwise."""
+    d1, d2 = coords[:, 1] - coords[:, 0], coords[:, 2] - coords[:, 0]
+    clockwise = d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0] < 0
+    return np.where(clockwise[:, None], [0, 2, 1], [0, 1, 2])
+
+
 def triangulate(points) -> Triangles:
     """Delaunay-triangulate a map and put every triangle in Groth order.
 
@@ -82,14 +153,29 @@ def triangulate(points) -> Triangles:
         If ``points`` is not a valid 2-D point set.
     """
     pts = check_points(points, "points")
-    return _triangulate(pts)
+    return triangulate_batch(pts[None])[0]
 
 
-def _triangulate(pts: np.ndarray) -> Triangles:
-    simplices = Delaunay(pts).simplices
-    perm = groth_order(pts[simplices])
-    vertices = np.take_along_axis(simplices, perm, axis=1).astype(np.intp)
-    return Triangles(vertices=vertices, coords=pts[vertices])
+def triangulate_batch(maps: np.ndarray) -> TriangleBatch:
+    """Delaunay triangles, in Groth order, of B maps of n landmarks each.
+
+    Parameters
+    ----------
+    maps : (B, n, 2) ndarray
+        Valid maps (as ``triangulate`` checks them; not re-checked here).
+
+    Returns
+    -------
+    TriangleBatch
+    """
+    simplices = [Delaunay(pts).simplices for pts in maps]
+    count = np.array([len(s) for s in simplices], dtype=np.intp)
+    offsets = np.r_[0, np.cumsum(count)]
+    trial = np.repeat(np.arange(len(maps)), count)
+    flat = np.concatenate(simplices).astype(np.intp, copy=False)
+    perm = groth_order(maps.reshape(-1, 2)[trial[:, None] * maps.shape[1] + flat])
+    return TriangleBatch(maps=maps, vertices=np.take_along_axis(flat, perm, axis=1),
+                         trial=trial, offsets=offsets)
 
 
 def delaunay_edges(points: np.ndarray) -> np.ndarray:

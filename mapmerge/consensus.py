@@ -1,4 +1,4 @@
-"""Consensus verification and landmark association (beyond the paper, DESIGN §5).
+"""Consensus verification and landmark association (beyond the paper).
 
 True triangle matches all share one rigid motion (θ, t); chance congruences
 between unrelated triangles do not. ``consensus_merge``:
@@ -36,8 +36,12 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import ConvexHull, cKDTree
 from scipy.special import chdtri, gammaln
 
-from .matching import correspondences
-from .statistic import _J, _align, mapped_covariance, paired_transforms, rotation, wrap_angle
+from .alignment import (
+    align_pairs, mapped_covariance, paired_transforms, prediction_var, reject_outliers, rotation,
+    wrap_angle,
+)
+from .matching import TriangleMatch, correspondences
+from .result import MergeBatch, build_from_parts
 
 #: Tail probability of every χ² gate (a true pair / landmark is rejected
 #: with this probability).
@@ -123,8 +127,8 @@ def _consensus(vp, vq, P, Q, scores, sigma):
             pairs, _ = correspondences(vp[members], vq[members], scores[members])
             if pairs.shape[0] < 3:
                 continue
-            al = _align(P[pairs[:, 0]], Q[pairs[:, 1]], sigma)
-            var_fit = 2 * sigma**2 + _prediction_var(cp[pool], al)
+            al = align_pairs(P[pairs[:, 0]], Q[pairs[:, 1]], sigma)
+            var_fit = 2 * sigma**2 + prediction_var(cp[pool], al)
             members = pool[_gate_d2(cp[pool], cq[pool], al.theta, al.t, var_fit) <= gate]
         key = (members.size, float(scores[members].sum()))
         if key > best_key:
@@ -142,15 +146,15 @@ def _grow(vp, vq, P, Q, scores, sigma, pool, centres, seed, gate):
     """
     dist = np.linalg.norm(centres - P[vp[seed]].mean(axis=0), axis=1)
     side = np.sqrt(np.sum((P[vp[seed]] - P[vp[seed]].mean(axis=0)) ** 2) / 2)
-    al = _align(P[vp[seed]], Q[vq[seed]], sigma)
+    al = align_pairs(P[vp[seed]], Q[vq[seed]], sigma)
     radius, members = GROW_FACTOR * side, np.array([seed])
     while True:
-        var = 2 * sigma**2 + _prediction_var(P[vp[pool]], al)
+        var = 2 * sigma**2 + prediction_var(P[vp[pool]], al)
         within = dist <= radius
         members = pool[within & (_gate_d2(P[vp[pool]], Q[vq[pool]], al.theta, al.t, var) <= gate)]
         pairs, _ = correspondences(vp[members], vq[members], scores[members])
         if pairs.shape[0] >= 3:
-            al = _align(P[pairs[:, 0]], Q[pairs[:, 1]], sigma)
+            al = align_pairs(P[pairs[:, 0]], Q[pairs[:, 1]], sigma)
         if within.all():
             return members
         radius *= GROW_FACTOR
@@ -189,31 +193,6 @@ def _hough_pool(cp, cq, scores, sigma):
     best = keys[np.argmax(votes)]
     idx = idx[np.all(np.abs(cell - best) <= 1, axis=1)]
     return idx[np.argsort(-scores[idx], kind="stable")][:MAX_POOL]
-
-
-def _prediction_var(points, alignment):
-    """Mean per-coordinate variance of R(θ) x + t from the fit's covariance.
-
-    With G = [R J x, I] the Jacobian in (θ, t), ½ tr(G Σ Gᵀ) =
-    ½ (‖x‖² Σ_θθ + 2 (R J x)·Σ_θt + tr Σ_tt).
-    """
-    cov = alignment.cov
-    rjx = points @ (rotation(alignment.theta) @ _J).T
-    return 0.5 * (np.sum(points**2, axis=-1) * cov[0, 0] + 2 * rjx @ cov[0, 1:] + cov[1, 1] + cov[2, 2])
-
-
-def reject_outliers(P, Q, pairs, sigma, gate_p=GATE_P):
-    """Iterative fit: drop the worst pair outside the χ²₂ gate and refit (Groth's rule)."""
-    gate = chdtri(2, gate_p)
-    while pairs.shape[0] >= 3:
-        al = _align(P[pairs[:, 0]], Q[pairs[:, 1]], sigma)
-        var = 2 * sigma**2 + _prediction_var(P[pairs[:, 0]], al)
-        resid = np.sum((Q[pairs[:, 1]] - P[pairs[:, 0]] @ rotation(al.theta).T - al.t) ** 2, axis=1) / var
-        worst = int(np.argmax(resid))
-        if resid[worst] <= gate:
-            break
-        pairs = np.delete(pairs, worst, axis=0)
-    return pairs
 
 
 def associate(P, Q, alignment, sigma, var_p=None, var_q=None):
@@ -312,15 +291,26 @@ def match_nfa(P, Q, alignment, pairs, n_hypotheses: int, sigma: float, var_p=Non
     return float(np.exp(log_nfa.min())) if k.size else float(n_hypotheses)
 
 
-def declared_triangles(match, pairs, P, Q, sigma):
+def declared_triangles(vertices_p, vertices_q, pairs, P, Q, sigma):
     """Triangle pairs whose three landmarks are all associated.
 
-    Returns the (p triangle, q triangle) index pairs, the q vertices in the
-    order paired with p's Groth order, and their log Λ.
+    Parameters
+    ----------
+    vertices_p, vertices_q : (Tp, 3), (Tq, 3) int ndarray
+        Groth-ordered triangles of the two maps.
+    pairs : (K, 2) int ndarray
+        Landmark associations.
+
+    Returns
+    -------
+    tri_pairs : (D, 2) int ndarray
+        (p triangle, q triangle) index pairs.
+    log_lr : (D,) ndarray
+        Their log Λ, the q vertices paired with p's Groth order.
     """
     to_q = np.full(P.shape[0], -1, dtype=np.int64)
     to_q[pairs[:, 0]] = pairs[:, 1]
-    mapped = to_q[match.tri_p.vertices]  # (Tp, 3)
+    mapped = to_q[vertices_p]  # (Tp, 3)
     full = np.all(mapped >= 0, axis=1)
     n_q = np.int64(Q.shape[0])
 
@@ -328,74 +318,101 @@ def declared_triangles(match, pairs, P, Q, sigma):
         v = np.sort(v, axis=1).astype(np.int64)
         return (v[:, 0] * n_q + v[:, 1]) * n_q + v[:, 2]
 
-    kq = key(match.tri_q.vertices)
+    kq = key(vertices_q)
     order = np.argsort(kq)
     tp_idx = np.flatnonzero(full)
     kp = key(mapped[tp_idx])
     pos = np.clip(np.searchsorted(kq, kp, sorter=order), 0, kq.size - 1)
     hit = kq[order[pos]] == kp
     tri_pairs = np.stack([tp_idx[hit], order[pos[hit]]], axis=1)
-    q_vertices = mapped[tri_pairs[:, 0]]
-    _, _, cost = paired_transforms(P[match.tri_p.vertices[tri_pairs[:, 0]]], Q[q_vertices])
-    return tri_pairs, q_vertices, -cost / (2.0 * sigma**2)
+    _, _, cost = paired_transforms(P[vertices_p[tri_pairs[:, 0]]], Q[mapped[tri_pairs[:, 0]]])
+    return tri_pairs, -cost / (2.0 * sigma**2)
 
 
 def _variances(var, n: int, sigma: float) -> np.ndarray:
     return np.full(n, sigma**2) if var is None else np.asarray(var, dtype=float)
 
 
-def consensus_merge(P, Q, sigma, match, log_tau, var_p=None, var_q=None):
-    """The ``method="consensus"`` merge (inputs already valid).
+def consensus_pairs(P, Q, sigma, vp, vq, scores, var_p=None, var_q=None):
+    """Landmark associations of one map pair from its candidate triangle pairs.
 
     Parameters
     ----------
     P, Q : ndarray
         The maps.
     sigma : float
-    match : TriangleMatch
-        LP output with the order-robust statistic.
-    log_tau : float
-        Threshold for a tentative pair to become a hypothesis / candidate.
+    vp, vq : (C, 3) int ndarray
+        Candidate triangle pairs (passing log τ), vertices paired.
+    scores : (C,) ndarray
+        Their log Λ.
     var_p, var_q : (n,) ndarray, optional
         Per-landmark variances (per coordinate) used by the association
         gates and the significance test instead of σ².
 
     Returns
     -------
-    MergeResult
-        ``triangle_pairs`` holds the declared pairs (all three landmarks
-        associated) followed by the LP's remaining tentative pairs.
+    pairs : (K, 2) int ndarray
+        Associations (empty when the match is not significant).
+    contested : (K,) bool ndarray
+        Associations the data cannot tell from a runner-up.
+    n_conflicts : int
     """
-    from .merging import finish
-
-    cand = np.flatnonzero(match.triangle_log_lr >= log_tau)
-    vp, vq, scores = match.p_vertices[cand], match.q_vertices[cand], match.triangle_log_lr[cand]
     pairs, n_conflicts = np.empty((0, 2), dtype=np.intp), 0
-    if cand.size >= MIN_CONSENSUS:
+    if len(scores) >= MIN_CONSENSUS:
         group = _consensus(vp, vq, P, Q, scores, sigma)
         if group.size >= MIN_CONSENSUS:
             pairs, n_conflicts = correspondences(vp[group], vq[group], scores[group])
-            pairs = reject_outliers(P, Q, pairs, sigma)
+            pairs = reject_outliers(P, Q, pairs, sigma, GATE_P)
     contested = np.zeros(len(pairs), dtype=bool)
     for _ in range(ASSOCIATION_ROUNDS):
         if pairs.shape[0] < 3:
             break
-        pairs, contested = associate(P, Q, _align(P[pairs[:, 0]], Q[pairs[:, 1]], sigma), sigma,
+        pairs, contested = associate(P, Q, align_pairs(P[pairs[:, 0]], Q[pairs[:, 1]], sigma), sigma,
                                      var_p, var_q)
-    if pairs.shape[0] < 3 or match_nfa(
-        P, Q, _align(P[pairs[:, 0]], Q[pairs[:, 1]], sigma), pairs, cand.size, sigma, var_p, var_q
-    ) > MATCH_NFA:
-        none = np.zeros(match.triangle_pairs.shape[0], dtype=bool)
-        return finish(P, Q, sigma, np.empty((0, 2), dtype=np.intp), n_conflicts,
-                      match.triangle_pairs, match.triangle_log_lr, none, log_tau,
-                      match.tri_p, match.tri_q, "consensus")
-    tri_pairs, _, tri_scores = declared_triangles(match, pairs[~contested], P, Q, sigma)
-    # Keep the LP's other tentative pairs (undeclared) so that their labels
-    # still count as misses or true negatives.
-    n_tq = len(match.tri_q)
-    rest = ~np.isin(match.triangle_pairs @ [n_tq, 1], tri_pairs @ [n_tq, 1])
-    all_pairs = np.concatenate([tri_pairs, match.triangle_pairs[rest]]).astype(np.intp)
-    all_scores = np.concatenate([tri_scores, match.triangle_log_lr[rest]])
-    declared = np.r_[np.ones(len(tri_pairs), bool), np.zeros(int(rest.sum()), bool)]
-    return finish(P, Q, sigma, pairs, n_conflicts, all_pairs, all_scores, declared, log_tau,
-                  match.tri_p, match.tri_q, "consensus")
+    if pairs.shape[0] < 3 or match_nfa(P, Q, align_pairs(P[pairs[:, 0]], Q[pairs[:, 1]], sigma), pairs,
+                                       len(scores), sigma, var_p, var_q) > MATCH_NFA:
+        return np.empty((0, 2), dtype=np.intp), np.empty(0, dtype=bool), n_conflicts
+    return pairs, contested, n_conflicts
+
+
+def consensus_merge(P, Q, sigma, match: TriangleMatch, log_tau, var_p=None, var_q=None) -> MergeBatch:
+    """The ``method="consensus"`` merge of a batch of map pairs.
+
+    Parameters
+    ----------
+    P, Q : (B, n_p, 2), (B, n_q, 2) ndarray
+    sigma, log_tau : (B,) ndarray
+    match : TriangleMatch
+        Tentative pairs with the order-robust statistic.
+    var_p, var_q : (B, n) ndarray, optional
+        Per-landmark variances.
+
+    Returns
+    -------
+    MergeBatch
+        ``triangle_pairs`` holds, per map pair, the declared pairs (three
+        uncontested landmarks associated) followed by the remaining
+        tentative pairs, undeclared, so that their labels still count as
+        misses or true negatives.
+    """
+    parts = []
+    for b in range(len(P)):
+        sel = match.trial == b
+        passing = sel & (match.log_lr >= log_tau[b])
+        vp, vq, scores = match.p_vertices[passing], match.q_vertices[passing], match.log_lr[passing]
+        pairs, contested, n_conflicts = consensus_pairs(
+            P[b], Q[b], float(sigma[b]), vp, vq, scores,
+            None if var_p is None else var_p[b], None if var_q is None else var_q[b])
+        tri_p, tri_q = match.tri_p[b].vertices, match.tri_q[b].vertices
+        lp_pairs, lp_scores = match.triangle_pairs[sel], match.log_lr[sel]
+        if len(pairs):
+            tri_pairs, tri_scores = declared_triangles(tri_p, tri_q, pairs[~contested], P[b], Q[b], float(sigma[b]))
+        else:
+            tri_pairs, tri_scores = np.empty((0, 2), dtype=np.intp), np.empty(0)
+        rest = ~np.isin(lp_pairs @ [len(tri_q), 1], tri_pairs @ [len(tri_q), 1])
+        parts.append((np.concatenate([tri_pairs, lp_pairs[rest]]).astype(np.intp),
+                      np.concatenate([tri_scores, lp_scores[rest]]),
+                      np.r_[np.ones(len(tri_pairs), bool), np.zeros(int(rest.sum()), bool)],
+                      pairs, n_conflicts))
+    return build_from_parts(method="consensus", P=P, Q=Q, sigma=sigma, log_tau=log_tau, tri_p=match.tri_p,
+                            tri_q=match.tri_q, parts=parts)

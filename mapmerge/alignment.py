@@ -1,0 +1,255 @@
+"""Closed-form ML alignment of paired landmarks, its covariances and outlier rejection.
+
+For n landmark pairs ``(p_k, q_k)`` with ``q_k = R(θ) µ_k + t + noise`` and
+``p_k = µ_k + noise`` (i.i.d. N(0, σ²) per coordinate), the GLRT's closed
+form (paper Theorem 1, generalised to n points) gives
+
+    θ* = atan2(-β, -α)        t* = q̄ - R(θ*) p̄        µ*_k = ½ (p_k + R(θ*)ᵀ (q_k - t*))
+
+with ``α = -Σ q̃_k · p̃_k`` and ``β = -Σ p̃_k × q̃_k`` over the centred points,
+and the minimum of eq. (5), J* = ½ Σ ‖R(θ*) p_k + t* - q_k‖², which is
+σ² χ²(2n - 3) under H1.
+
+``fit_transforms`` solves many independent problems at once (ragged sets
+tagged by a trial index, one sum per trial in a fixed order), so one set
+alone and the same set in a batch give the same bits; ``align`` is the
+batch of one.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.special import chdtri
+
+from ._validation import check_points, check_sigma
+
+#: J = [[0, -1], [1, 0]]: dR/dθ = R J.
+ROT90 = np.array([[0.0, -1.0], [1.0, 0.0]])
+
+
+def wrap_angle(theta):
+    """Wrap angles to (-π, π]."""
+    wrapped = np.remainder(np.asarray(theta, dtype=float) + np.pi, 2 * np.pi) - np.pi
+    return np.where(wrapped <= -np.pi, wrapped + 2 * np.pi, wrapped)
+
+
+def rotation(theta: float) -> np.ndarray:
+    """The 2x2 rotation matrix R(θ) = [[cos θ, -sin θ], [sin θ, cos θ]]."""
+    c, s = np.cos(theta), np.sin(theta)
+    return np.array([[c, -s], [s, c]])
+
+
+def rotate(theta, x: np.ndarray) -> np.ndarray:
+    """R(θ) x for points x (..., n, 2), θ broadcasting over leading axes.
+
+    Elementwise, so a batch of maps rotates to the same bits as each map alone.
+    """
+    theta = np.asarray(theta, dtype=float)
+    c, s = np.cos(theta)[..., None], np.sin(theta)[..., None]
+    return np.stack([c * x[..., 0] - s * x[..., 1], s * x[..., 0] + c * x[..., 1]], axis=-1)
+
+
+def fit_transforms(trial: np.ndarray, P: np.ndarray, Q: np.ndarray, n_trials: int):
+    """θ*, t* and J* of ragged sets of paired points, one set per trial.
+
+    Parameters
+    ----------
+    trial : (K,) int ndarray
+        Set of each pair, in ``0 .. n_trials - 1``.
+    P, Q : (K, 2) ndarray
+        Paired points.
+    n_trials : int
+
+    Returns
+    -------
+    theta : (n_trials,) ndarray
+        NaN for a trial with no pair.
+    t : (n_trials, 2) ndarray
+    cost : (n_trials,) ndarray
+        J*, computed as a residual (no cancellation).
+    """
+    K = np.bincount(trial, minlength=n_trials)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        p_bar = np.stack([np.bincount(trial, P[:, d], n_trials) for d in (0, 1)], axis=1) / K[:, None]
+        q_bar = np.stack([np.bincount(trial, Q[:, d], n_trials) for d in (0, 1)], axis=1) / K[:, None]
+    px, py = (P - p_bar[trial]).T
+    qx, qy = (Q - q_bar[trial]).T
+    alpha = -np.bincount(trial, qx * px + qy * py, n_trials)
+    beta = -np.bincount(trial, px * qy - py * qx, n_trials)
+    theta = np.where(K > 0, wrap_angle(np.arctan2(-beta, -alpha)), np.nan)
+    t = q_bar - rotate(theta, p_bar[:, None, :])[:, 0]
+    c, s = np.cos(theta)[trial], np.sin(theta)[trial]
+    rx, ry = c * px - s * py - qx, s * px + c * py - qy
+    # Optimal µ is the midpoint, so each pair leaves half its squared gap.
+    cost = 0.5 * np.bincount(trial, rx**2 + ry**2, n_trials)
+    return theta, t, cost
+
+
+def paired_transforms(coords_p, coords_q):
+    """θ*, t* and J* for row-wise paired point sets of equal size.
+
+    Parameters
+    ----------
+    coords_p, coords_q : (M, n, 2) ndarray
+        ``coords_p[m]`` is paired with ``coords_q[m]`` vertex by vertex.
+
+    Returns
+    -------
+    theta : (M,) ndarray
+    t : (M, 2) ndarray
+    cost : (M,) ndarray
+    """
+    cp = np.asarray(coords_p, dtype=float)
+    cq = np.asarray(coords_q, dtype=float)
+    M, n = cp.shape[:2]
+    return fit_transforms(np.repeat(np.arange(M), n), cp.reshape(-1, 2), cq.reshape(-1, 2), M)
+
+
+@dataclass(frozen=True)
+class Alignment:
+    """ML alignment of paired landmarks (Theorem 1 for n points).
+
+    Attributes
+    ----------
+    theta : float
+        Rotation θ* of map q relative to map p, in (-π, π].
+    t : (2,) ndarray
+        Translation t*, so that ``q ≈ R(θ*) p + t*``.
+    mu : (n, 2) ndarray
+        ML landmark positions µ* in map p's frame.
+    cost : float
+        Minimum of eq. (5), J* >= 0.
+    log_lr : float
+        ``-J* / (2σ²)``.
+    dof : int
+        ``2n - 3``: degrees of freedom of ``J*/σ²`` under H1.
+    sigma : float
+    cov : (3, 3) ndarray
+        Covariance of ``(θ*, t*_x, t*_y)``: inverse Fisher information with
+        the landmarks µ profiled out (Cramér-Rao bound, evaluated at µ*).
+        Computed on first use.
+    mu_cov : (n, 2, 2) ndarray
+        Covariance of each fused landmark µ*_v (computed on first use).
+    """
+
+    theta: float
+    t: np.ndarray
+    mu: np.ndarray
+    cost: float
+    log_lr: float
+    dof: int
+    sigma: float
+
+    @functools.cached_property
+    def _covariances(self):
+        return transform_covariance(self.mu, self.theta, self.sigma)
+
+    @property
+    def cov(self) -> np.ndarray:
+        return self._covariances[0]
+
+    @property
+    def mu_cov(self) -> np.ndarray:
+        return self._covariances[1]
+
+    @classmethod
+    def from_fit(cls, theta: float, t: np.ndarray, cost: float, P: np.ndarray, Q: np.ndarray,
+                 sigma: float) -> "Alignment":
+        """The alignment of fitted (θ*, t*, J*), with µ* from the paired points."""
+        mu = 0.5 * (P + rotate(-theta, Q - t))
+        return cls(theta=float(theta), t=t, mu=mu, cost=float(cost),
+                   log_lr=-float(cost) / (2.0 * sigma**2), dof=2 * P.shape[0] - 3, sigma=sigma)
+
+
+def transform_covariance(mu: np.ndarray, theta: float, sigma: float):
+    """Covariance of (θ, t) and of each µ_v for n paired landmarks.
+
+    The Fisher information of eq. (5) in (θ, t, µ) has a 2x2 block 2I/σ² per
+    landmark; eliminating µ leaves ``(1/2σ²) [[Σ‖µ‖², bᵀ], [b, n I]]`` for
+    (θ, t) with ``b = R J Σµ``. The µ_v block of the inverse is
+    ``σ²/2 I + ¼ [Jµ_v, Rᵀ] Σ_θt [Jµ_v, Rᵀ]ᵀ``.
+    """
+    R = rotation(theta)
+    n = mu.shape[0]
+    b = R @ ROT90 @ mu.sum(axis=0)
+    info = np.empty((3, 3))
+    info[0, 0] = np.sum(mu**2)
+    info[0, 1:] = info[1:, 0] = b
+    info[1:, 1:] = n * np.eye(2)
+    cov = 2.0 * sigma**2 * np.linalg.inv(info)
+    G = np.concatenate([(mu @ ROT90.T)[:, :, None], np.broadcast_to(R.T, (n, 2, 2))], axis=2)
+    mu_cov = 0.5 * sigma**2 * np.eye(2) + 0.25 * G @ cov @ G.transpose(0, 2, 1)
+    return cov, mu_cov
+
+
+def mapped_covariance(x: np.ndarray, theta: float, cov: np.ndarray, var) -> np.ndarray:
+    """Covariance (m, 2, 2) of q landmarks mapped into p's frame, x = Rᵀ(q - t).
+
+    ``var`` is the landmarks' own variance per coordinate (a scalar, or one
+    per landmark); ``cov`` the (θ, t) covariance of the transform.
+    """
+    G = np.concatenate([(-(x @ ROT90.T))[:, :, None], np.broadcast_to(-rotation(theta).T, (x.shape[0], 2, 2))],
+                       axis=2)
+    own = np.broadcast_to(np.asarray(var, dtype=float), (x.shape[0],))[:, None, None] * np.eye(2)
+    return own + G @ cov @ G.transpose(0, 2, 1)
+
+
+def prediction_var(points: np.ndarray, alignment: Alignment) -> np.ndarray:
+    """Mean per-coordinate variance of R(θ) x + t from the fit's covariance.
+
+    With G = [R J x, I] the Jacobian in (θ, t), ½ tr(G Σ Gᵀ) =
+    ½ (‖x‖² Σ_θθ + 2 (R J x)·Σ_θt + tr Σ_tt).
+    """
+    cov = alignment.cov
+    rjx = points @ (rotation(alignment.theta) @ ROT90).T
+    return 0.5 * (np.sum(points**2, axis=-1) * cov[0, 0] + 2 * rjx @ cov[0, 1:] + cov[1, 1] + cov[2, 2])
+
+
+def align(P, Q, sigma=1.0) -> Alignment:
+    """Closed-form ML rotation, translation and landmarks for paired points.
+
+    Parameters
+    ----------
+    P, Q : (n, 2) array_like
+        Row k of ``P`` and row k of ``Q`` are the same landmark seen in map p
+        and map q; n >= 2.
+    sigma : float, default 1.0
+        Per-coordinate noise standard deviation, > 0 (scales ``log_lr`` only).
+
+    Returns
+    -------
+    Alignment
+
+    Raises
+    ------
+    ValueError
+        On NaN/inf, wrong or mismatched shapes, n < 2 or ``sigma <= 0``.
+    """
+    P = check_points(P, "P", min_points=2, geometry=False)
+    Q = check_points(Q, "Q", min_points=2, geometry=False)
+    if P.shape != Q.shape:
+        raise ValueError(f"P and Q must have the same shape, got {P.shape} and {Q.shape}")
+    return align_pairs(P, Q, check_sigma(sigma))
+
+
+def align_pairs(P: np.ndarray, Q: np.ndarray, sigma: float) -> Alignment:
+    """``align`` without the input checks (for callers holding valid arrays)."""
+    theta, t, cost = fit_transforms(np.zeros(len(P), dtype=np.intp), P, Q, 1)
+    return Alignment.from_fit(theta[0], t[0], cost[0], P, Q, sigma)
+
+
+def reject_outliers(P, Q, pairs, sigma, gate_p: float = 1e-3):
+    """Iterative fit: drop the worst pair outside the χ²₂ gate and refit (Groth's rule)."""
+    gate = chdtri(2, gate_p)
+    while pairs.shape[0] >= 3:
+        al = align_pairs(P[pairs[:, 0]], Q[pairs[:, 1]], sigma)
+        var = 2 * sigma**2 + prediction_var(P[pairs[:, 0]], al)
+        resid = np.sum((Q[pairs[:, 1]] - rotate(al.theta, P[pairs[:, 0]]) - al.t) ** 2, axis=1) / var
+        worst = int(np.argmax(resid))
+        if resid[worst] <= gate:
+            break
+        pairs = np.delete(pairs, worst, axis=0)
+    return pairs

@@ -1,0 +1,8 @@
+"""Outside baselines run through the same interface as the paper's matcher.
+
+Each module holds one baseline with a batch function
+``merge(P, Q, sigma, tri_p, tri_q, rng)`` returning a ``MergeBatch``:
+
+- ``groth``: Groth (1986)'s invariant triangle matching with voting;
+- ``astroalign``: ``astroalign.find_transform`` (optional extra ``[baselines]``).
+"""
