@@ -56,7 +56,9 @@ class MatcherConfig:
 class MCConfig:
     n_trials: int = 200
     n_jobs: int = 2
-    chunk_size: int = 50  # upper bound: a cell is split into at least n_jobs chunks
+    # Upper bound on trials per chunk (a resume point); a cell is split into at
+    # least n_jobs chunks. Larger chunks amortise per-chunk file I/O.
+    chunk_size: int = 1000
     seed: int = 0
     backend: str = "loky"
     # dask.distributed scheduler address; null with backend=dask starts a LocalCluster.

@@ -29,6 +29,7 @@ from mapmerge import metrics
 from mapmerge.datasets import victoria_park
 from mapmerge.merging import get_method, match_stage, merge_at
 from mapmerge.simulate import ScenarioBatch, check_scenario
+from mapmerge.triangles import triangulate_batch
 
 SCENARIO_KEYS = ("n_landmarks", "overlap", "snr_db", "aspect", "unrelated")
 #: Keys of a real-data scenario (``kind: victoria_park``).
@@ -137,25 +138,33 @@ def _run_slice(root_seed: int, scenario: dict, matcher: dict, ks: np.ndarray):
     clock = time.perf_counter()
     match = match_stage(sc.p, sc.q, sc.sigma, method.name, matcher.get("objective", "lr"), _loosest_tau(taus))
     time_match = (time.perf_counter() - clock) / B
+    lp_true = lp_consistent = None
     if match is not None:
         lp_true, lp_consistent = pair_labels(sc, match.tri_p, match.tri_q, match.trial, match.triangle_pairs)
-    columns, n_common = [], None
+    n_common = metrics.common_triangle_counts(sc.ids_p, sc.ids_q, *_triangles(sc, match))
+    columns, last = [], None
     for rule in taus:
         clock = time.perf_counter()
         log_tau = rule_log_tau(rule, match, lp_true if match is not None else None, B)
-        merged = merge_at(sc.p, sc.q, sc.sigma, match, log_tau, method.name, **variances)
-        if n_common is None:
-            n_common = metrics.common_triangle_counts(sc.ids_p, sc.ids_q, merged.tri_p, merged.tri_q)
-        is_true, consistent = pair_labels(sc, merged.tri_p, merged.tri_q, merged.tri_trial, merged.triangle_pairs)
-        row = {"trial": ks, "tau": np.full(B, rule, dtype=object), "log_tau": log_tau, "sigma": sc.sigma,
-               "n_p": np.full(B, sc.p.shape[1]), "n_q": np.full(B, sc.q.shape[1]),
-               "n_common_landmarks": sc.n_common,
-               **metrics.detection_counts_batch(merged.tri_trial, is_true, merged.declared, n_common),
-               "order_flips": np.bincount(merged.tri_trial[is_true & ~consistent], minlength=B),
-               **metrics.map_errors_batch(sc, merged)}
-        row["time_match_s"] = np.full(B, time_match)
-        row["time_merge_s"] = np.full(B, (time.perf_counter() - clock) / B)
-        columns.append(row)
+        declared = None if match is None else match.log_lr >= log_tau[match.trial]
+        if last is None:
+            row = _evaluate(sc, match, log_tau, method.name, variances, n_common, lp_true, lp_consistent)
+        else:
+            # A trial whose declared pairs did not change merges as under the previous rule.
+            row = {key: value.copy() for key, value in last[1].items()}
+            sub = np.flatnonzero(np.bincount(match.trial[declared != last[0]], minlength=B))
+            if sub.size:
+                part = _evaluate(sc.take(sub), match.take(sub), log_tau[sub], method.name,
+                                 {k: v[sub] for k, v in variances.items()}, n_common[sub],
+                                 lp_true[np.isin(match.trial, sub)], lp_consistent[np.isin(match.trial, sub)])
+                for key, value in part.items():
+                    row[key][sub] = value
+        last = declared, row
+        columns.append({"trial": ks, "tau": np.full(B, rule, dtype=object), "log_tau": log_tau,
+                        "sigma": sc.sigma, "n_p": np.full(B, sc.p.shape[1]), "n_q": np.full(B, sc.q.shape[1]),
+                        "n_common_landmarks": sc.n_common, **row,
+                        "time_match_s": np.full(B, time_match),
+                        "time_merge_s": np.full(B, (time.perf_counter() - clock) / B)})
     # Trial-major, rule-minor rows.
     trials = pd.DataFrame({key: np.stack([col[key] for col in columns], axis=1).ravel() for key in columns[0]})
     if match is None:
@@ -165,6 +174,24 @@ def _run_slice(root_seed: int, scenario: dict, matcher: dict, ks: np.ndarray):
         pairs = pd.DataFrame({"trial": ks[match.trial], "score": match.log_lr, "label": lp_true,
                               "order_consistent": lp_consistent})
     return trials, pairs
+
+
+def _triangles(sc, match):
+    if match is not None:
+        return match.tri_p, match.tri_q
+    return triangulate_batch(sc.p), triangulate_batch(sc.q)
+
+
+def _evaluate(sc, match, log_tau, method, variances, n_common, lp_true, lp_consistent) -> dict:
+    """Merge at log τ and score against the truth: detection counts and map errors per trial."""
+    merged = merge_at(sc.p, sc.q, sc.sigma, match, log_tau, method, **variances)
+    if match is not None and merged.triangle_pairs is match.triangle_pairs:
+        is_true, consistent = lp_true, lp_consistent  # the LP's own pairs: labelled once
+    else:
+        is_true, consistent = pair_labels(sc, merged.tri_p, merged.tri_q, merged.tri_trial, merged.triangle_pairs)
+    return {**metrics.detection_counts_batch(merged.tri_trial, is_true, merged.declared, n_common),
+            "order_flips": np.bincount(merged.tri_trial[is_true & ~consistent], minlength=len(sc)),
+            **metrics.map_errors_batch(sc, merged)}
 
 
 def rule_log_tau(rule: str, match, lp_true, n_trials: int) -> np.ndarray:

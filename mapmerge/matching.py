@@ -304,6 +304,15 @@ class TriangleMatch:
     def __len__(self) -> int:
         return len(self.tri_p)
 
+    def take(self, trials: np.ndarray) -> "TriangleMatch":
+        """The map pairs ``trials`` (indices, increasing), renumbered 0..len(trials)-1."""
+        renumber = np.full(len(self), -1)
+        renumber[trials] = np.arange(len(trials))
+        keep = renumber[self.trial] >= 0
+        return TriangleMatch(self.tri_p.take(trials), self.tri_q.take(trials), renumber[self.trial[keep]],
+                             self.triangle_pairs[keep], self.log_lr[keep], self.p_vertices[keep],
+                             self.q_vertices[keep])
+
 
 def match_triangles(P: np.ndarray, Q: np.ndarray, sigma: np.ndarray, objective: str = "lr",
                     cyclic: bool = False, log_tau: float | None = None, sparse: bool | None = None,

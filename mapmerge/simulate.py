@@ -24,7 +24,7 @@ t, and the two maps' normal noise.
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
@@ -146,6 +146,11 @@ class ScenarioBatch:
 
     def __len__(self) -> int:
         return len(self.p)
+
+    def take(self, trials: np.ndarray) -> "ScenarioBatch":
+        """The trials ``trials`` as a batch of their own."""
+        return ScenarioBatch(*(getattr(self, f.name) if f.name == "snr_db" else getattr(self, f.name)[trials]
+                               for f in fields(self)))
 
     def __getitem__(self, k: int) -> Scenario:
         return Scenario(self.p[k], self.q[k], self.ids_p[k], self.ids_q[k], self.truth[k], float(self.sigma[k]),

@@ -5,7 +5,7 @@ import pytest
 
 import mapmerge as mm
 from mapmerge import metrics
-from mapmerge.statistic import ccw_order
+from mapmerge.triangles import ccw_order
 from mapmerge.triangles import groth_order
 
 

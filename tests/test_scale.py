@@ -4,16 +4,20 @@ import numpy as np
 import pytest
 
 import mapmerge as mm
-from mapmerge import merging, metrics
+from mapmerge import matching, metrics
 from mapmerge.matching import gate_radius, side_features
-from mapmerge.merging import match_triangles
 
 LOG_TAU = mm.resolve_log_tau("chi2:0.01")
 
 
+def match_triangles(P, Q, sigma, objective, cyclic=False, log_tau=None, sparse=None):
+    """The driver on one map pair (its batch of one)."""
+    return matching.match_triangles(P[None], Q[None], np.array([sigma]), objective, cyclic, log_tau, sparse)
+
+
 def _declared(match):
-    keep = match.triangle_log_lr >= LOG_TAU
-    return match.triangle_pairs[keep], match.triangle_log_lr[keep]
+    keep = match.log_lr >= LOG_TAU
+    return match.triangle_pairs[keep], match.log_lr[keep]
 
 
 def test_gate_radius_bounds_every_declarable_pair(rng):
@@ -29,7 +33,7 @@ def test_gate_radius_bounds_every_declarable_pair(rng):
 @pytest.mark.parametrize("n, snr, cyclic", [(400, 40, False), (400, 40, True), (200, 30, True)])
 def test_sparse_declares_what_dense_declares(monkeypatch, n, snr, cyclic):
     # A cap above the gate's crowding makes the sparse candidate set complete.
-    monkeypatch.setattr(merging, "SPARSE_NEIGHBOURS", 256)
+    monkeypatch.setattr(matching, "SPARSE_NEIGHBOURS", 256)
     sc = mm.simulate.make_pair(n, 0.75, snr, rng=3)
     dense = match_triangles(sc.p, sc.q, sc.sigma, "lr", cyclic, LOG_TAU, sparse=False)
     sparse = match_triangles(sc.p, sc.q, sc.sigma, "lr", cyclic, LOG_TAU, sparse=True)
@@ -48,8 +52,8 @@ def test_default_cap_agrees_at_high_snr():
 def test_merge_maps_switches_to_sparse_and_gives_the_dense_merge(monkeypatch):
     sc = mm.simulate.make_pair(400, 0.75, 40, rng=6)
     auto = mm.merge_maps(sc.p, sc.q, sc.sigma, method="paper")  # Tp·Tq > DENSE_MAX_PAIRS
-    assert len(auto.tri_p) * len(auto.tri_q) > merging.DENSE_MAX_PAIRS
-    monkeypatch.setattr(merging, "DENSE_MAX_PAIRS", 10**12)
+    assert len(auto.tri_p) * len(auto.tri_q) > matching.DENSE_MAX_PAIRS
+    monkeypatch.setattr(matching, "DENSE_MAX_PAIRS", 10**12)
     dense = mm.merge_maps(sc.p, sc.q, sc.sigma, method="paper")
     np.testing.assert_array_equal(auto.pairs, dense.pairs)
     np.testing.assert_allclose(auto.merged, dense.merged, atol=1e-12)

@@ -5,7 +5,7 @@ import pytest
 from scipy import optimize, stats
 
 import mapmerge as mm
-from mapmerge.statistic import paired_transforms
+from mapmerge.alignment import paired_transforms
 
 
 def _profile(theta, P, Q):
