@@ -24,11 +24,14 @@ def check_points(points, name: str, min_points: int = 3, geometry: bool = True) 
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"{name} contains NaN or inf; all coordinates must be finite")
     if geometry:
-        if np.unique(arr, axis=0).shape[0] != arr.shape[0]:
+        order = np.lexsort((arr[:, 1], arr[:, 0]))
+        if np.any(np.all(arr[order[1:]] == arr[order[:-1]], axis=1)):
             raise ValueError(f"{name} contains duplicate points; landmarks must be distinct")
-        centred = arr - arr.mean(axis=0)
-        s = np.linalg.svd(centred, compute_uv=False)
-        if s[1] <= 1e-12 * max(s[0], 1e-300):
+        # All on one line: every point's offset from the first is parallel to
+        # the longest such offset (to 1e-12 of the squared extent).
+        d = arr - arr[0]
+        far = d[np.argmax(d[:, 0] ** 2 + d[:, 1] ** 2)]
+        if np.max(np.abs(d[:, 0] * far[1] - d[:, 1] * far[0])) <= 1e-12 * (far[0] ** 2 + far[1] ** 2):
             raise ValueError(f"{name} points are all collinear; a triangulation needs 2-D spread")
     return arr
 

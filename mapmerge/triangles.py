@@ -17,6 +17,7 @@ the Delaunay call itself runs per map.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -68,10 +69,10 @@ class TriangleBatch:
     def __len__(self) -> int:
         return self.offsets.size - 1
 
-    @property
+    @functools.cached_property
     def count(self) -> np.ndarray:
         """Triangles per map, (B,)."""
-        return np.diff(self.offsets)
+        return self.offsets[1:] - self.offsets[:-1]
 
     @property
     def slot(self) -> np.ndarray:
@@ -124,19 +125,22 @@ def groth_order(coords: np.ndarray) -> np.ndarray:
         ``perm`` such that ``coords[t, perm[t]]`` is in Groth order.
     """
     # Side opposite vertex i joins the other two vertices.
-    d = coords[:, [1, 2, 0]] - coords[:, [2, 0, 1]]
-    opposite = np.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1])
+    v0, v1, v2 = coords[:, 0], coords[:, 1], coords[:, 2]
+    o0, o1, o2 = _length(v1 - v2), _length(v2 - v0), _length(v0 - v1)
     # Ascending opposite length: shortest side is opposite v3, intermediate
-    # opposite v1, longest opposite v2. The rank of each vertex in a stable
-    # sort (exact ties keep index order), by comparisons: far cheaper than
-    # an argsort over a length-3 axis.
-    o0, o1, o2 = opposite[:, 0], opposite[:, 1], opposite[:, 2]
-    rank = np.stack([(o1 < o0).astype(np.intp) + (o2 < o0),
-                     (o0 <= o1).astype(np.intp) + (o2 < o1),
-                     (o0 <= o2).astype(np.intp) + (o1 <= o2)], axis=1)
-    by_opposite = np.empty_like(rank)
-    np.put_along_axis(by_opposite, rank, np.arange(3), axis=1)
-    return by_opposite[:, [1, 2, 0]]
+    # opposite v1, longest opposite v2. Each vertex's rank in a stable sort
+    # (exact ties keep index order), by comparisons: far cheaper than an
+    # argsort over a length-3 axis. Rank r goes to Groth slot (r + 2) % 3.
+    rows = np.arange(len(coords))
+    perm = np.empty((len(coords), 3), dtype=np.intp)
+    perm[rows, ((o1 < o0).astype(np.intp) + (o2 < o0) + 2) % 3] = 0
+    perm[rows, ((o0 <= o1).astype(np.intp) + (o2 < o1) + 2) % 3] = 1
+    perm[rows, ((o0 <= o2).astype(np.intp) + (o1 <= o2) + 2) % 3] = 2
+    return perm
+
+
+def _length(d: np.ndarray) -> np.ndarray:
+    return np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1])
 
 
 def ccw_order(coords: np.ndarray) -> np.ndarray:
@@ -181,11 +185,16 @@ def triangulate_batch(maps: np.ndarray) -> TriangleBatch:
     TriangleBatch
     """
     simplices = [Delaunay(pts).simplices for pts in maps]
-    count = np.array([len(s) for s in simplices], dtype=np.intp)
-    offsets = np.r_[0, np.cumsum(count)]
-    trial = np.repeat(np.arange(len(maps)), count)
-    flat = np.concatenate(simplices).astype(np.intp, copy=False)
-    perm = groth_order(maps.reshape(-1, 2)[trial[:, None] * maps.shape[1] + flat])
+    if len(simplices) == 1:  # one map: no bookkeeping across maps
+        flat = simplices[0].astype(np.intp)
+        trial, offsets = np.zeros(len(flat), np.intp), np.array([0, len(flat)])
+        perm = groth_order(maps[0][flat])
+    else:
+        count = np.array([len(s) for s in simplices], dtype=np.intp)
+        offsets = np.concatenate(([0], np.cumsum(count)))
+        trial = np.repeat(np.arange(len(maps)), count)
+        flat = np.concatenate(simplices).astype(np.intp, copy=False)
+        perm = groth_order(maps.reshape(-1, 2)[trial[:, None] * maps.shape[1] + flat])
     return TriangleBatch(maps=maps, vertices=np.take_along_axis(flat, perm, axis=1),
                          trial=trial, offsets=offsets)
 
