@@ -1,23 +1,26 @@
-"""Benchmarks against the project's speed and scale targets (results/bench.*).
+"""Benchmarks of what a user runs, end to end (results/bench.md, bench.csv).
 
-    python -m experiments.bench            # everything (about 10 minutes on 2 cores)
-    python -m experiments.bench --quick    # Fig. 3 grid at 1,000 trials per cell (not the target's 10,000)
+    python -m experiments.bench            # everything (about 15 minutes on 2 cores)
+    python -m experiments.bench --quick    # Fig. 3 grid at 1,000 trials per cell, 10^4 landmarks at most
 
-Measured in one process run so that ratios are stable on a noisy machine:
+Measured in one run so that ratios are stable on a noisy machine:
 
-1. per-trial cost of Fig. 3 cells (10 and 20 landmarks, 75 % overlap, 20 dB)
-   against the floor measured on the same trials: the three
-   ``scipy.spatial.Delaunay`` calls a trial must make (two maps, the truth);
-2. the full Fig. 3 grid (4 panels x 9 SNR x 10,000 trials) wall time on 2
-   workers, through the real CLI (startup, 36 Hydra jobs, chunk files,
-   aggregation: everything the user waits for);
-3. the speed-up of ``mc.n_jobs=2`` over ``mc.n_jobs=1`` on that same grid;
-4. merge time and peak memory (fresh process each) of two maps of 10^3,
-   10^4 and 10^5 landmarks (75 % overlap, 30 dB, ``method="consensus"``),
-   with a log-log plot.
+1. per-trial cost of a Fig. 3 cell (10 and 20 landmarks, 75 % overlap,
+   20 dB, the ``paper`` matcher with its three τ rules) through the CLI:
+   ``python -m experiments.run ... mc.n_trials=N+100 mc.n_jobs=1`` minus the
+   same command at 100 trials, over N; against the floor measured on the
+   same trials: the three ``scipy.spatial.Delaunay`` calls a trial must make
+   (its two maps and the truth that sets σ from the SNR);
+2. the full Fig. 3 grid (4 panels x 9 SNR x 10,000 trials) through the CLI
+   on 2 workers, with the basic and with the joblib launcher;
+3. ``merge_maps`` on two maps of 10^5 landmarks (75 % overlap, 30 dB) for
+   every method, each in a fresh process with a time and memory limit:
+   seconds and peak memory, or the limit it hit;
+4. one ``merge_maps`` call on 10-landmark maps against its two Delaunay
+   calls, and the same pairs through ``merge_batch``.
 
-Writes ``bench.csv`` (one row per measurement), ``bench.md`` (targets next
-to the numbers) and ``bench_scale.png``/``.pdf``.
+Writes ``bench.csv`` (one row per measurement) and ``bench.md`` (the
+targets next to the numbers).
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import subprocess
 import sys
 import tempfile
@@ -35,176 +39,169 @@ import numpy as np
 import pandas as pd
 from scipy.spatial import Delaunay
 
-from .trials import make_trial_pair, run_chunk
-
-FIG3_MATCHER = {"method": "paper", "objective": "lr", "taus": ["oracle", "chi2:0.01", "chi2:0.001"]}
-SIZES = (1_000, 10_000, 100_000)
-
-
-def per_trial(n_landmarks: int, n_trials: int = 1000, chunk: int = 500, repeats: int = 5) -> dict:
-    """Seconds per trial of a Fig. 3 cell and of its three Delaunay calls.
-
-    The cell runs as the Fig. 3 preset runs it (chunks of ``chunk`` trials,
-    so the batched engine). Trials and floor are timed alternately
-    ``repeats`` times and the fastest of each kept, as ``timeit`` does, so
-    a burst of load on a shared machine does not land on one side only.
-    """
-    scenario = {"kind": "synthetic", "n_landmarks": n_landmarks, "overlap": 0.75, "snr_db": 20.0,
-                "aspect": 1.0, "unrelated": False}
-    run_chunk(0, scenario, FIG3_MATCHER, 0, 20)  # warm-up
-    maps = [make_trial_pair(0, scenario, k) for k in range(n_trials)]
-    trial = floor = np.inf
-    for _ in range(repeats):
-        start = time.perf_counter()
-        for a in range(0, n_trials, chunk):
-            run_chunk(0, scenario, FIG3_MATCHER, a, min(a + chunk, n_trials))
-        trial = min(trial, (time.perf_counter() - start) / n_trials)
-        start = time.perf_counter()
-        for sc in maps:
-            Delaunay(sc.p), Delaunay(sc.q), Delaunay(sc.truth)
-        floor = min(floor, (time.perf_counter() - start) / n_trials)
-    return {"n_landmarks": n_landmarks, "trial_s": trial, "floor_s": floor, "ratio": trial / floor}
+#: Seconds and bytes of address space a 10^5-landmark merge may use.
+SCALE_LIMIT_S = 300
+SCALE_LIMIT_BYTES = 8 * 2**30
+SCALE_METHODS = ("paper", "cyclic", "consensus", "groth", "astroalign")
 
 
-def _run_cli(args: list[str]) -> float:
+def _cli(args: list[str]) -> float:
     start = time.perf_counter()
     subprocess.run([sys.executable, "-m", "experiments.run", *args, "mc.progress=false"],
                    check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     return time.perf_counter() - start
 
 
-def fig3_grid(trials: int, n_jobs: int) -> float:
-    """Wall time of the whole Fig. 3 sweep through the CLI, aggregation included."""
-    with tempfile.TemporaryDirectory() as tmp:
-        return _run_cli(["-m", "experiment=fig3", f"mc.n_trials={trials}", f"mc.n_jobs={n_jobs}",
-                         f"hydra.sweep.dir={tmp}", f"aggregate_dir={tmp}/aggregate"])
-
-
-def fig3_trials(trials: int, n_jobs: int) -> float:
-    """Seconds of ``run(cfg)`` summed over the 36 Fig. 3 cells, in this process:
-    the Monte Carlo execution alone (no interpreter start, Hydra job
-    bookkeeping or aggregation, which do not parallelise)."""
-    from hydra import compose, initialize_config_dir
-
-    from .run import CONF_DIR, run
-
-    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        cfgs = [compose("config", overrides=["experiment=fig3", f"mc.n_trials={trials}", f"mc.n_jobs={n_jobs}",
-                                             "mc.progress=false", f"scenario.n_landmarks={n}",
-                                             f"scenario.overlap={o}", f"scenario.snr_db={s}"])
-                for n in (10, 20) for o in (0.75, 0.5) for s in range(0, 45, 5)]
-    with tempfile.TemporaryDirectory() as tmp:
-        run(cfgs[0], f"{tmp}/warm-up")  # start the workers, as the CLI's first cell does
-        start = time.perf_counter()
-        for k, cfg in enumerate(cfgs):
-            run(cfg, f"{tmp}/{k}")
-        return time.perf_counter() - start
-
-
-def one_size(n: int) -> dict:
-    """Merge two n-landmark maps in this process; report time and peak RSS."""
-    import resource
-
+def per_trial_cli(n_landmarks: int, n_trials: int, repeats: int = 3) -> dict:
+    """Seconds per trial of a Fig. 3 cell through the CLI, and its Delaunay floor (best of ``repeats``)."""
     import mapmerge as mm
-    from mapmerge import metrics
+    from experiments.trials import trial_seeds
+
+    cell = [f"scenario.n_landmarks={n_landmarks}", "scenario.overlap=0.75", "scenario.snr_db=20",
+            "mc.n_jobs=1", "experiment=fig3", "hydra.mode=RUN"]
+    scenario = {"n_landmarks": n_landmarks, "overlap": 0.75, "snr_db": 20.0, "aspect": 1.0, "unrelated": False}
+    batch = mm.simulate.make_pairs(n_landmarks, 0.75, 20.0, trial_seeds(0, scenario, range(n_trials)))
+    common = round(0.75 * n_landmarks)
+    trial = floor = np.inf
+    with tempfile.TemporaryDirectory() as tmp:
+        for r in range(repeats):
+            long = _cli([*cell, f"mc.n_trials={n_trials + 100}", f"hydra.run.dir={tmp}/long{r}"])
+            short = _cli([*cell, "mc.n_trials=100", f"hydra.run.dir={tmp}/short{r}"])
+            trial = min(trial, (long - short) / n_trials)
+            start = time.perf_counter()
+            for k in range(n_trials):
+                Delaunay(batch.p[k]), Delaunay(batch.q[k]), Delaunay(batch.truth[k, : 2 * n_landmarks - common])
+            floor = min(floor, (time.perf_counter() - start) / n_trials)
+    return {"n_landmarks": n_landmarks, "trial_s": trial, "floor_s": floor, "ratio": trial / floor}
+
+
+def fig3_grid(trials: int, launcher: str) -> float:
+    """Wall time of the whole Fig. 3 sweep through the CLI on 2 workers, aggregation included."""
+    extra = (["hydra/launcher=joblib", "hydra.launcher.n_jobs=2", "mc.n_jobs=1"] if launcher == "joblib"
+             else ["mc.n_jobs=2"])
+    with tempfile.TemporaryDirectory() as tmp:
+        return _cli(["-m", "experiment=fig3", f"mc.n_trials={trials}", *extra, f"hydra.sweep.dir={tmp}",
+                     f"aggregate_dir={tmp}/aggregate"])
+
+
+def one_size(n: int, method: str) -> dict:
+    """Merge two n-landmark maps in this process; time and peak RSS."""
+    import mapmerge as mm
 
     sc = mm.simulate.make_pair(n, 0.75, 30.0, rng=1)
     start = time.perf_counter()
-    res = mm.merge_maps(sc.p, sc.q, sc.sigma, method="consensus")
+    res = mm.merge_maps(sc.p, sc.q, sc.sigma, method=method)
     seconds = time.perf_counter() - start
-    err = metrics.map_errors(sc, res)
-    return {"n_landmarks": n, "merge_s": seconds,
+    err = mm.metrics.map_errors(sc, res)
+    return {"n_landmarks": n, "method": method, "merge_s": seconds,
             "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6,
             "correct_pairs": err["correct_pairs"], "wrong_pairs": err["wrong_pairs"],
-            "rot_err_deg": err["rot_err_deg"], "success": err["success"]}
+            "rot_err_deg": err["rot_err_deg"], "success": err["success"], "outcome": "done"}
 
 
-def scale() -> list[dict]:
+def scale(n: int) -> list[dict]:
     rows = []
-    for n in SIZES:
-        out = subprocess.run([sys.executable, "-m", "experiments.bench", "--one-size", str(n)],
-                             check=True, capture_output=True, text=True).stdout
-        rows.append(json.loads(out.strip().splitlines()[-1]))
+    for method in SCALE_METHODS:
+        def limit():
+            resource.setrlimit(resource.RLIMIT_AS, (SCALE_LIMIT_BYTES, SCALE_LIMIT_BYTES))
+        try:
+            out = subprocess.run([sys.executable, "-m", "experiments.bench", "--one-size", str(n), method],
+                                 capture_output=True, text=True, timeout=SCALE_LIMIT_S, preexec_fn=limit)
+        except subprocess.TimeoutExpired:
+            rows.append({"n_landmarks": n, "method": method, "outcome": f"over {SCALE_LIMIT_S} s"})
+            continue
+        if out.returncode:
+            last = (out.stderr.strip().splitlines() or ["failed"])[-1]
+            reason = "out of memory" if "MemoryError" in last or "allocate" in last else last[:80]
+            rows.append({"n_landmarks": n, "method": method, "outcome": reason})
+        else:
+            rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
     return rows
 
 
-def scale_figure(rows: list[dict], out: Path) -> list[Path]:
-    import matplotlib
+def single_call(n_pairs: int = 2000, repeats: int = 5) -> dict:
+    """One merge_maps call at 10 landmarks (method paper) against its two Delaunay calls."""
+    import mapmerge as mm
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from .figures import STYLE, _save
-
-    n = np.array([r["n_landmarks"] for r in rows], dtype=float)
-    t = np.array([r["merge_s"] for r in rows])
-    with plt.rc_context(STYLE):
-        fig, ax = plt.subplots(figsize=(3.6, 3.0))
-        ax.loglog(n, t, "o-", label="merge_maps, consensus (measured)")
-        ref = n * np.log(n)
-        ax.loglog(n, ref * t[-1] / ref[-1], "k--", lw=0.7, label="n log n (through the last point)")
-        ax.loglog(n, n**2 * t[-1] / n[-1] ** 2, "k:", lw=0.7, label="n² (through the last point)")
-        ax.set_xlabel("landmarks per map")
-        ax.set_ylabel("seconds")
-        ax.grid(alpha=0.3, which="both", lw=0.4)
-        ax.legend(frameon=False, fontsize=6)
-        fig.tight_layout()
-        return _save(fig, out, "bench_scale")
+    batch = mm.simulate.make_pairs(10, 0.75, 20.0, list(range(n_pairs)))
+    for k in range(50):
+        mm.merge_maps(batch.p[k], batch.q[k], batch.sigma[k], method="paper")
+    call = floor = per_batch = np.inf
+    for _ in range(repeats):
+        start = time.perf_counter()
+        for k in range(n_pairs):
+            mm.merge_maps(batch.p[k], batch.q[k], batch.sigma[k], method="paper")
+        call = min(call, (time.perf_counter() - start) / n_pairs)
+        start = time.perf_counter()
+        mm.merge_batch(batch.p, batch.q, batch.sigma, method="paper")
+        per_batch = min(per_batch, (time.perf_counter() - start) / n_pairs)
+        start = time.perf_counter()
+        for k in range(n_pairs):
+            Delaunay(batch.p[k]), Delaunay(batch.q[k])
+        floor = min(floor, (time.perf_counter() - start) / n_pairs)
+    return {"call_s": call, "batch_s": per_batch, "floor_s": floor, "ratio": call / floor,
+            "batch_ratio": per_batch / floor}
 
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description="Speed and scale benchmarks.")
     parser.add_argument("--out", default="results")
-    parser.add_argument("--quick", action="store_true", help="Fig. 3 grid at 1,000 trials per cell, x10")
-    parser.add_argument("--one-size", type=int, help=argparse.SUPPRESS)
+    parser.add_argument("--quick", action="store_true", help="Fig. 3 grid at 1,000 trials per cell; 10^4 landmarks")
+    parser.add_argument("--one-size", nargs=2, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.one_size:
-        print(json.dumps(one_size(args.one_size)))
+        print(json.dumps(one_size(int(args.one_size[0]), args.one_size[1])))
         return
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    rows, md = [], ["# Benchmarks", "", f"Machine: {os.cpu_count()} cores. Command: "
-                    f"`python -m experiments.bench{' --quick' if args.quick else ''}`.", ""]
+    rows = []
+    md = ["# Benchmarks", "", f"Machine: {os.cpu_count()} cores. Command: "
+          f"`python -m experiments.bench{' --quick' if args.quick else ''}`. Every time is end to end as a user "
+          "runs it; each ratio is taken within one run.", ""]
 
-    md += ["## Per-trial cost of a Fig. 3 cell (target: <= 2x the Delaunay floor)", "",
-           "| landmarks | per trial (ms) | floor: 3 Delaunay calls (ms) | ratio | target met |",
-           "|---:|---:|---:|---:|:---|"]
+    md += ["## Per-trial cost of a Fig. 3 cell through the CLI (target: <= 2x its three Delaunay calls)", "",
+           "`python -m experiments.run experiment=fig3 scenario.n_landmarks=N scenario.overlap=0.75 "
+           "scenario.snr_db=20 mc.n_jobs=1 mc.n_trials=M+100` minus the same at 100 trials, over M.", "",
+           "| landmarks | per trial (ms) | floor: 3 Delaunay calls (ms) | ratio | target met |", "|---:|---:|---:|---:|:---|"]
     for n in (10, 20):
-        r = per_trial(n)
-        rows.append({"benchmark": "per_trial", **r})
+        r = per_trial_cli(n, 5000 if args.quick else 20000)
+        rows.append({"benchmark": "per_trial_cli", **r})
         md.append(f"| {n} | {1e3 * r['trial_s']:.3f} | {1e3 * r['floor_s']:.3f} | {r['ratio']:.2f} | "
                   f"{'yes' if r['ratio'] <= 2 else 'no'} |")
 
     trials = 1000 if args.quick else 10_000
-    wall = {jobs: fig3_grid(trials, jobs) for jobs in (2, 1)}
-    mc = {jobs: fig3_trials(trials, jobs) for jobs in (2, 1)}
-    rows.append({"benchmark": "fig3_grid", "trials_per_cell": trials, "n_jobs_2_s": wall[2],
-                 "n_jobs_1_s": wall[1], "speedup": wall[1] / wall[2]})
-    rows.append({"benchmark": "fig3_trials", "trials_per_cell": trials, "n_jobs_2_s": mc[2],
-                 "n_jobs_1_s": mc[1], "speedup": mc[1] / mc[2]})
-    grid = "36 cells x 10,000 trials" if trials == 10_000 else f"36 cells x {trials:,} trials (--quick; the targets are for 10,000)"
-    md += ["", f"## Full Fig. 3 grid, {grid}, 2 workers, whole CLI run (target: < 180 s)", "",
-           f"{wall[2]:.0f} s: target {'met' if wall[2] < 180 else 'not met'}.",
-           "", "## n_jobs=2 over n_jobs=1 on the same grid (target >= 1.8x)", "",
-           "| what is timed | n_jobs=1 (s) | n_jobs=2 (s) | speed-up | target met |", "|---|---:|---:|---:|:---|",
-           f"| Monte Carlo execution: `run(cfg)` of the 36 cells | {mc[1]:.1f} | {mc[2]:.1f} | "
-           f"{mc[1] / mc[2]:.2f}x | {'yes' if mc[1] / mc[2] >= 1.8 else 'no'} |",
-           f"| whole CLI (adds start-up, Hydra's per-job bookkeeping, aggregation) | {wall[1]:.1f} | "
-           f"{wall[2]:.1f} | {wall[1] / wall[2]:.2f}x | {'yes' if wall[1] / wall[2] >= 1.8 else 'no'} |"]
+    grid = {launcher: fig3_grid(trials, launcher) for launcher in ("basic", "joblib")}
+    for launcher, seconds in grid.items():
+        rows.append({"benchmark": "fig3_grid", "launcher": launcher, "trials_per_cell": trials, "seconds": seconds})
+    md += ["", f"## Full Fig. 3 grid, 36 cells x {trials:,} trials, whole CLI on 2 workers (target: <= 40 s at "
+           "10,000 trials)", "", "| launcher | command | seconds |", "|---|---|---:|",
+           f"| basic (the default) | `python -m experiments.run -m experiment=fig3` | {grid['basic']:.1f} |",
+           f"| joblib | `... hydra/launcher=joblib hydra.launcher.n_jobs=2 mc.n_jobs=1` | {grid['joblib']:.1f} |"]
 
-    md += ["", "## Large maps, 75 % overlap, 30 dB, consensus (target 10^5: < 10 s, < 2 GB)", "",
-           "| landmarks per map | merge (s) | peak RSS (GB) | correct pairs | wrong pairs | rotation error (deg) |",
-           "|---:|---:|---:|---:|---:|---:|"]
-    big = scale()
+    n_big = 10_000 if args.quick else 100_000
+    big = scale(n_big)
+    rows += [{"benchmark": "scale", **r} for r in big]
+    md += ["", f"## merge_maps on 10^{int(np.log10(n_big))} landmarks per map, 75 % overlap, 30 dB "
+           f"(target 10^5: <= 10 s and <= 2 GB, every method)", "",
+           f"Each method in a fresh process, limited to {SCALE_LIMIT_S} s and {SCALE_LIMIT_BYTES / 2**30:.0f} GB.", "",
+           "| method | seconds | peak RSS (GB) | correct pairs | wrong pairs | rotation error (deg) | outcome |",
+           "|---|---:|---:|---:|---:|---:|---|"]
     for r in big:
-        rows.append({"benchmark": "scale", **r})
-        md.append(f"| {r['n_landmarks']:,} | {r['merge_s']:.2f} | {r['peak_rss_gb']:.2f} | "
-                  f"{r['correct_pairs']:,} | {r['wrong_pairs']:,} | {r['rot_err_deg']:.4f} |")
-    last = big[-1]
-    md += ["", f"10^5: {last['merge_s']:.1f} s, {last['peak_rss_gb']:.2f} GB: time target "
-           f"{'met' if last['merge_s'] < 10 else 'not met'}, memory target "
-           f"{'met' if last['peak_rss_gb'] < 2 else 'not met'}. Growth: ![scale](bench_scale.png)"]
-    scale_figure(big, out)
+        if r["outcome"] == "done":
+            md.append(f"| {r['method']} | {r['merge_s']:.1f} | {r['peak_rss_gb']:.2f} | {r['correct_pairs']:,} | "
+                      f"{r['wrong_pairs']:,} | {r['rot_err_deg']:.4f} | "
+                      f"{'target met' if r['merge_s'] <= 10 and r['peak_rss_gb'] <= 2 else 'target not met'} |")
+        else:
+            md.append(f"| {r['method']} | | | | | | {r['outcome']} |")
+
+    one = single_call()
+    rows.append({"benchmark": "single_call", **one})
+    md += ["", "## One merge_maps call at 10 landmarks, method paper (target: <= 3x its two Delaunay calls)", "",
+           "| what | per map pair (ms) | ratio to the floor |", "|---|---:|---:|",
+           f"| `merge_maps(p, q, sigma, method='paper')` | {1e3 * one['call_s']:.3f} | {one['ratio']:.2f} |",
+           f"| `merge_batch(P, Q, sigma, method='paper')` on 2,000 pairs | {1e3 * one['batch_s']:.3f} | "
+           f"{one['batch_ratio']:.2f} |",
+           f"| floor: 2 Delaunay calls | {1e3 * one['floor_s']:.3f} | 1 |"]
     pd.DataFrame(rows).to_csv(out / "bench.csv", index=False, float_format="%.6g")
     (out / "bench.md").write_text("\n".join(md) + "\n")
     print((out / "bench.md").read_text())
