@@ -22,6 +22,7 @@ checked, for every job of a sweep, before Hydra creates any directory.
 from __future__ import annotations
 
 import hashlib
+import itertools
 import json
 import logging
 import os
@@ -42,7 +43,19 @@ from .trials import TIME_COLUMNS, cell_key, code_digest, run_chunk
 from .examples import example_tables
 
 log = logging.getLogger(__name__)
-CONF_DIR = str(Path(__file__).resolve().parent.parent / "conf")
+
+
+def _conf_dir() -> str:
+    """The Hydra configs: ``conf/`` beside the package in a source checkout,
+    ``experiments/conf`` in an installed copy."""
+    here = Path(__file__).resolve().parent
+    for candidate in (here.parent / "conf", here / "conf"):
+        if (candidate / "config.yaml").is_file():
+            return str(candidate)
+    raise FileNotFoundError(f"no Hydra configs (config.yaml) in {here.parent / 'conf'} or {here / 'conf'}")
+
+
+CONF_DIR = _conf_dir()
 register_configs()
 
 
@@ -181,7 +194,7 @@ def _write_chunk(base: Path, trials: pd.DataFrame, pairs: pd.DataFrame) -> None:
     write_parquet_atomic(trials.drop(columns=list(TIME_COLUMNS)), Path(f"{base}.trials.parquet"))
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="config")
+@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="config")
 def main(cfg: DictConfig) -> None:
     from hydra.core.hydra_config import HydraConfig
 
@@ -197,7 +210,6 @@ def preflight(argv: list[str]) -> None:
         With one line naming the key, the value and what is allowed.
     """
     from hydra import compose, initialize_config_dir
-    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
     overrides = [a for a in argv if not a.startswith("-")]
@@ -214,7 +226,7 @@ def preflight(argv: list[str]) -> None:
                 base = compose("config", overrides=plain, return_hydra_config=True)
                 params = [f"{k}={v}" for k, v in (base.hydra.sweeper.get("params") or {}).items()]
                 sweep = parser.parse_overrides(params + overrides)
-                jobs = [list(job) for batch in BasicSweeper.split_arguments(sweep, None) for job in batch]
+                jobs = expand_sweep(sweep)
             for job in jobs:
                 cfg = None
                 if multirun:
@@ -233,6 +245,14 @@ def preflight(argv: list[str]) -> None:
     except Exception as exc:  # Hydra/OmegaConf composition errors are multi-line
         text = " ".join(line.strip() for line in str(exc).splitlines() if line.strip())
         raise ConfigError(text) from None
+
+
+def expand_sweep(overrides) -> list[list[str]]:
+    """Every job of a sweep: the cartesian product of the sweep overrides'
+    values, in the order Hydra's basic sweeper launches them."""
+    choices = [[f"{o.get_key_element()}={v}" for v in o.sweep_string_iterator()] if o.is_sweep_override()
+               else [o.input_line] for o in overrides]
+    return [list(job) for job in itertools.product(*choices)]
 
 
 def _set_values(base: DictConfig, overrides) -> DictConfig | None:

@@ -20,6 +20,7 @@ on a batch of map pairs; the one-pair functions are its batch of one.
 from . import metrics, simulate
 from .alignment import Alignment, align, rotation, wrap_angle
 from .combining import CombinedMap
+from .mapfiles import LandmarkMap, MapFileError, read_map, write_map
 from .matching import log_tau_from_chi2, resolve_log_tau
 from .merging import METHODS, merge_batch, merge_maps
 from .result import MergeBatch, MergeResult
@@ -29,6 +30,8 @@ from .triangles import Triangles, triangulate
 __all__ = [
     "Alignment",
     "CombinedMap",
+    "LandmarkMap",
+    "MapFileError",
     "METHODS",
     "MergeBatch",
     "MergeResult",
@@ -38,6 +41,8 @@ __all__ = [
     "log_tau_from_chi2",
     "merge_batch",
     "merge_maps",
+    "read_map",
+    "write_map",
     "metrics",
     "resolve_log_tau",
     "rotation",

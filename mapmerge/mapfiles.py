@@ -1,0 +1,144 @@
+"""Landmark maps as files: CSV or TSV with a header, or a pandas DataFrame.
+
+A map file has one row per landmark and the columns
+
+- ``x``, ``y`` (required): the landmark estimate in the map's own frame;
+- ``id`` (optional): the landmark's name, carried into the combined map;
+- ``sxx``, ``sxy``, ``syy`` (optional): its 2x2 covariance, or ``sigma``
+  (optional): its per-coordinate standard deviation.
+
+The separator is a comma, or a tab when the file name ends in ``.tsv`` or
+the header holds tabs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from .result import MergeResult
+
+COVARIANCE_COLUMNS = ("sxx", "sxy", "syy")
+
+
+@dataclass(frozen=True)
+class LandmarkMap:
+    """A map read from a file.
+
+    Attributes
+    ----------
+    points : (n, 2) ndarray
+    ids : (n,) ndarray or None
+        The ``id`` column, as read.
+    cov : (n, 2, 2) ndarray or None
+        Per-landmark covariances (from ``sxx, sxy, syy`` or ``sigma``).
+    source : str
+        Where the map came from (for messages).
+    """
+
+    points: np.ndarray
+    ids: np.ndarray | None
+    cov: np.ndarray | None
+    source: str
+
+    @property
+    def variances(self) -> np.ndarray | None:
+        """Per-coordinate variance of each landmark (half the covariance trace), or None."""
+        return None if self.cov is None else np.trace(self.cov, axis1=1, axis2=2) / 2
+
+
+class MapFileError(ValueError):
+    """A map file or table that cannot be read as a landmark map."""
+
+
+def read_map(source) -> LandmarkMap:
+    """Read a landmark map from a CSV/TSV path or a DataFrame.
+
+    Parameters
+    ----------
+    source : str, Path or pandas.DataFrame
+
+    Returns
+    -------
+    LandmarkMap
+
+    Raises
+    ------
+    MapFileError
+        One line naming the file and what is wrong: missing file or column,
+        a non-numeric or missing cell, fewer than 3 rows, a covariance that
+        is not positive definite.
+    """
+    if isinstance(source, pd.DataFrame):
+        table, name = source, "DataFrame"
+    else:
+        path = Path(source)
+        name = str(path)
+        if not path.is_file():
+            raise MapFileError(f"{name}: no such file")
+        with open(path) as fh:
+            header = fh.readline()
+        sep = "\t" if path.suffix.lower() == ".tsv" or "\t" in header else ","
+        try:
+            table = pd.read_csv(path, sep=sep, dtype=str, keep_default_na=False)
+        except (pd.errors.ParserError, UnicodeDecodeError, pd.errors.EmptyDataError) as exc:
+            raise MapFileError(f"{name}: not a CSV/TSV table ({str(exc).splitlines()[0]})") from None
+    table = table.rename(columns=lambda c: str(c).strip().lower())
+    missing = [c for c in ("x", "y") if c not in table.columns]
+    if missing:
+        raise MapFileError(f"{name}: missing column {', '.join(missing)} (have: {', '.join(map(str, table.columns))})")
+    if len(table) < 3:
+        raise MapFileError(f"{name}: needs at least 3 landmarks (rows), got {len(table)}")
+    has_cov = [c for c in COVARIANCE_COLUMNS if c in table.columns]
+    if has_cov and len(has_cov) != 3:
+        raise MapFileError(f"{name}: covariance needs all of sxx, sxy, syy, got only {', '.join(has_cov)}")
+    numeric = ["x", "y", *has_cov, *(["sigma"] if "sigma" in table.columns and not has_cov else [])]
+    values = {}
+    for col in numeric:
+        v = pd.to_numeric(table[col].astype(str).str.strip(), errors="coerce").to_numpy(dtype=float)
+        bad = np.flatnonzero(~np.isfinite(v))
+        if bad.size:
+            cell = table[col].iloc[bad[0]]
+            raise MapFileError(f"{name}: column {col} row {bad[0] + 1} is {cell!r}, not a finite number")
+        values[col] = v
+    cov = None
+    if has_cov:
+        cov = np.stack([np.stack([values["sxx"], values["sxy"]], -1), np.stack([values["sxy"], values["syy"]], -1)], -2)
+        bad = np.flatnonzero((values["sxx"] <= 0) | (values["sxx"] * values["syy"] - values["sxy"] ** 2 <= 0))
+        if bad.size:
+            raise MapFileError(f"{name}: row {bad[0] + 1}: covariance (sxx, sxy, syy) must be positive definite")
+    elif "sigma" in values:
+        bad = np.flatnonzero(values["sigma"] <= 0)
+        if bad.size:
+            raise MapFileError(f"{name}: row {bad[0] + 1}: sigma must be > 0")
+        cov = (values["sigma"] ** 2)[:, None, None] * np.eye(2)
+    ids = table["id"].to_numpy() if "id" in table.columns else None
+    return LandmarkMap(points=np.column_stack([values["x"], values["y"]]), ids=ids, cov=cov, source=name)
+
+
+def combined_table(result: MergeResult, map_p: LandmarkMap | None = None,
+                   map_q: LandmarkMap | None = None) -> pd.DataFrame:
+    """The combined map as a table: x, y, origin, index_p, index_q[, id_p, id_q], sxx, sxy, syy.
+
+    ``index_p``/``index_q`` are 0-based rows of the input maps (-1: none).
+    """
+    c = result.combined
+    table = pd.DataFrame({"x": c.points[:, 0], "y": c.points[:, 1], "origin": c.origin.astype(str),
+                          "index_p": c.index_p, "index_q": c.index_q})
+    for side, m, index in (("p", map_p, c.index_p), ("q", map_q, c.index_q)):
+        if m is not None and m.ids is not None:
+            table[f"id_{side}"] = np.where(index >= 0, m.ids[np.maximum(index, 0)], "")
+    cov = result.cov
+    table["sxx"], table["sxy"], table["syy"] = cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]
+    return table
+
+
+def write_map(result: MergeResult, path, map_p: LandmarkMap | None = None, map_q: LandmarkMap | None = None):
+    """Write the combined map of ``result`` (``combined_table``) as CSV, or TSV for a ``.tsv`` name."""
+    path = Path(path)
+    combined_table(result, map_p, map_q).to_csv(path, index=False, sep="\t" if path.suffix.lower() == ".tsv" else ",",
+                                                float_format="%.10g")
+    return path

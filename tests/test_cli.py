@@ -1,0 +1,87 @@
+"""The mapmerge command and the map-file reader, end to end on files written here."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pandas as pd
+import pytest
+
+import mapmerge as mm
+from mapmerge.cli import main
+
+
+def _maps(tmp_path, rotation_deg=30.0, sigma=0.02, seed=3):
+    """Two maps of 30 landmarks, 20 shared, q rotated and shifted; ids name the landmarks."""
+    rng = np.random.default_rng(seed)
+    world = rng.uniform(0, 6, (40, 2))
+    th = np.radians(rotation_deg)
+    R = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
+    p = world[:30] + rng.normal(0, sigma, (30, 2))
+    q = world[10:] @ R.T + [1.0, 2.0] + rng.normal(0, sigma, (30, 2))
+    a, b = tmp_path / "a.csv", tmp_path / "b.tsv"
+    pd.DataFrame({"id": [f"L{i}" for i in range(30)], "x": p[:, 0], "y": p[:, 1]}).to_csv(a, index=False)
+    pd.DataFrame({"id": [f"L{i}" for i in range(10, 40)], "x": q[:, 0], "y": q[:, 1]}).to_csv(b, index=False, sep="\t")
+    return a, b, th
+
+
+def test_merge_writes_the_combined_map_and_a_json_summary(tmp_path, capsys):
+    a, b, th = _maps(tmp_path)
+    out, plot = tmp_path / "merged.csv", tmp_path / "merged.png"
+    assert main(["merge", str(a), str(b), "--sigma", "0.02", "-o", str(out), "--plot", str(plot), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["matched"] and info["pairs"] == 20
+    assert abs(info["theta"] - th) < 3 * info["theta_std"] + 1e-9
+    np.testing.assert_allclose(info["t"], [1.0, 2.0], atol=5 * max(info["t_std"]))
+    merged = pd.read_csv(out)
+    fused = merged[merged.origin == "fused"]
+    assert len(merged) == 40 and len(fused) == 20
+    assert (fused.id_p == fused.id_q).all()  # every fused row joins the same landmark
+    assert {"x", "y", "origin", "index_p", "index_q", "sxx", "sxy", "syy"} <= set(merged.columns)
+    assert plot.stat().st_size > 10_000
+
+
+def test_unrelated_maps_exit_1_and_write_nothing(tmp_path, capsys):
+    a, _, _ = _maps(tmp_path)
+    rng = np.random.default_rng(9)
+    other = tmp_path / "other.csv"
+    pd.DataFrame(rng.uniform(0, 6, (30, 2)), columns=["x", "y"]).to_csv(other, index=False)
+    out = tmp_path / "merged.csv"
+    assert main(["merge", str(a), str(other), "--sigma", "0.02", "-o", str(out)]) == 1
+    assert "no match" in capsys.readouterr().err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("content, message", [
+    ("x,z\n1,2\n3,4\n5,6\n", "missing column y"),
+    ("x,y\n1,2\n3,oops\n5,6\n", "column y row 2 is 'oops'"),
+    ("x,y\n1,2\n3,\n5,6\n", "column y row 2 is ''"),
+    ("x,y\n1,2\nnan,4\n5,6\n", "column x row 2 is 'nan'"),
+    ("x,y\n1,2\n3,4\n", "at least 3 landmarks"),
+    ("x,y,sxx,sxy\n1,2,1,0\n3,4,1,0\n5,6,1,0\n", "needs all of sxx, sxy, syy"),
+    ("x,y,sigma\n1,2,1\n3,4,0\n5,6,1\n", "sigma must be > 0"),
+])
+def test_bad_files_give_one_line_and_exit_2(tmp_path, capsys, content, message):
+    a, _, _ = _maps(tmp_path)
+    bad = tmp_path / "bad.csv"
+    bad.write_text(content)
+    assert main(["merge", str(a), str(bad), "--sigma", "0.02", "-o", str(tmp_path / "m.csv")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and "\n" not in err and not (tmp_path / "m.csv").exists()
+
+
+def test_read_map_takes_a_dataframe_and_covariances():
+    table = pd.DataFrame({"x": [0, 1, 0], "y": [0, 0, 1], "sxx": [1, 2, 3], "sxy": [0, 0.5, 0], "syy": [1, 2, 3]})
+    m = mm.read_map(table)
+    np.testing.assert_array_equal(m.points, [[0, 0], [1, 0], [0, 1]])
+    np.testing.assert_array_equal(m.cov[1], [[2, 0.5], [0.5, 2]])
+    np.testing.assert_array_equal(m.variances, [1, 2, 3])
+
+
+def test_python_dash_m_runs_the_same_command(tmp_path):
+    a, b, _ = _maps(tmp_path)
+    out = tmp_path / "m.csv"
+    proc = subprocess.run([sys.executable, "-m", "mapmerge", "merge", str(a), str(b), "--sigma", "0.02", "-o", str(out)],
+                          capture_output=True, text=True)
+    assert proc.returncode == 0 and "matched (consensus)" in proc.stdout and out.exists()
