@@ -119,8 +119,8 @@ def test_astroalign_baseline_is_reproducible():
 
 
 @pytest.mark.slow
-def test_consensus_targets_at_scale_of_the_issue():
-    """The issue's targets on 60 trials per SNR and 300 unrelated pairs (slow)."""
+def test_consensus_targets_on_60_trials_per_snr():
+    """Consensus targets on 60 trials per SNR and 300 unrelated pairs (slow)."""
     for snr, need in ((40, 0.95), (30, 0.90)):
         tp = common = fp = 0
         for seed in range(60):

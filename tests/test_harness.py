@@ -237,7 +237,7 @@ def test_example_triangle_status_prefers_the_telling_pair():
 
 
 def test_readme_includes_are_refreshed_from_results(tmp_path):
-    from experiments.readme import refresh
+    from experiments.docs import refresh
 
     (tmp_path / "results").mkdir()
     (tmp_path / "results" / "t.md").write_text("# Title\n\n## Part\n\n| a |\n|---|\n| 1 |\n![f](f.png)\n")

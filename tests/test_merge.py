@@ -90,7 +90,7 @@ def test_paper_fig1_range():
 
 
 def test_loglr_objective_loses_true_pairs():
-    """DESIGN §3.3: with Σ log Λ, hopeless pairs push true ones out of the LP."""
+    """With Σ log Λ in a forced full assignment, hopeless pairs push true ones out of the LP."""
     lost = {"lr": 0, "loglr": 0}
     for s in range(4):
         sc = mm.simulate.make_pair(100, 0.75, 40, rng=s)

@@ -1,0 +1,63 @@
+"""The repository stands on its own: it installs anywhere and points nowhere outside itself."""
+
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _tracked_text_files():
+    out = subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True, text=True, check=True).stdout
+    for name in out.splitlines():
+        path = ROOT / name
+        if path.suffix in {".py", ".md", ".yaml", ".toml", ".txt", ".cfg"} or path.name in {"Makefile", "run"}:
+            if path.is_file() and path.stat().st_size < 2_000_000:
+                yield name, path.read_text(errors="replace")
+
+
+def test_nothing_refers_outside_the_repository():
+    pattern = re.compile(r"\.\./shared|DESIGN(\.md| ?§)")
+    offenders = [name for name, text in _tracked_text_files()
+                 if pattern.search(text) and name != "tests/test_packaging.py"]
+    assert offenders == []
+
+
+def test_readme_is_short_and_starts_with_the_two_commands():
+    text = (ROOT / "README.md").read_text()
+    assert len(text.encode()) < 12_000
+    first_block = text.split("```")[1]
+    assert "make paper" in first_block and "make test" in first_block
+    ci = (ROOT / ".ci" / "run").read_text()
+    assert "make test" in ci
+
+
+def test_the_paper_is_cited_by_title():
+    for doc in ("README.md", "docs/method.md"):
+        text = (ROOT / doc).read_text()
+        assert "Maximum likelihood fusion of stochastic maps" in text and "1303.6170" in text, doc
+
+
+def test_a_wheel_installs_and_runs_a_sweep_from_elsewhere(tmp_path):
+    """Not editable: the configs ship inside the package."""
+    subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "-w", str(tmp_path / "wheel"), str(ROOT)],
+                   check=True, capture_output=True)
+    wheel = next((tmp_path / "wheel").glob("mapmerge-*.whl"))
+    target = tmp_path / "site"
+    subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--target", str(target), str(wheel)],
+                   check=True, capture_output=True)
+    work = tmp_path / "elsewhere"
+    work.mkdir()
+    env = {**os.environ, "PYTHONPATH": str(target)}
+    proc = subprocess.run([sys.executable, "-c", "import experiments.run as r; print(r.CONF_DIR)"], cwd=work, env=env,
+                          capture_output=True, text=True, check=True)
+    assert Path(proc.stdout.strip()) == target / "experiments" / "conf"
+    subprocess.run([sys.executable, "-m", "experiments.run", "-m", "experiment=smoke", "mc.n_trials=4",
+                    "mc.chunk_size=2", "mc.examples=0", "mc.progress=false"], cwd=work, env=env, check=True,
+                   capture_output=True)
+    assert (work / "outputs" / "sweeps" / "smoke" / "aggregate" / "table.md").is_file()
+    proc = subprocess.run([sys.executable, "-m", "mapmerge", "merge", "--help"], cwd=work, env=env,
+                          capture_output=True, text=True, check=True)
+    assert "--sigma" in proc.stdout
