@@ -94,7 +94,23 @@ def load(dirs, n_jobs: int = 1) -> tuple[pd.DataFrame, dict[tuple, pd.DataFrame]
             f"trial {row.trial} of cell {row[CELL].to_dict()} (seed {row.seed}) appears in more than one "
             "run; pass run directories that do not overlap (e.g. one n_trials setting per cell)"
         )
-    return trials, {cell: pd.concat(by_cell[cell], ignore_index=True) for cell in sorted(by_cell)}
+    return trials, {cell: _once(by_cell[cell]) for cell in sorted(by_cell)}
+
+
+def _once(parts: list[pd.DataFrame]) -> pd.DataFrame:
+    """A cell's tentative pairs with every (seed, trial) counted once.
+
+    Pairs do not depend on τ, so runs of one cell that differ only in their
+    τ rules (a sweep over ``matcher.taus``) hold the same trials' pairs:
+    the first run that has a trial supplies its pairs.
+    """
+    seen, kept = set(), []
+    for part in parts:
+        key = part["seed"].to_numpy(np.int64) * (1 << 32) + part["trial"].to_numpy(np.int64)
+        new = ~np.isin(key, np.fromiter(seen, np.int64, len(seen)))
+        kept.append(part[new])
+        seen.update(np.unique(key[new]).tolist())
+    return pd.concat(kept, ignore_index=True)
 
 
 def _load_run(run: Path) -> tuple[pd.DataFrame, pd.DataFrame]:
@@ -208,7 +224,7 @@ def markdown(table: pd.DataFrame) -> str:
 
 def markdown_table(table: pd.DataFrame) -> str:
     cols = ["n_landmarks", "overlap", "snr_db", "unrelated", "method", "objective", "tau", "n_trials", "tp", "fp", "md",
-            "precision", "md_rate", "recall_common", "success_rate", "median_rmse_over_sigma"]
+            "precision", "md_rate", "p_d", "p_fa", "recall_common", "success_rate", "median_rmse_over_sigma"]
     return table[cols].to_markdown(index=False, floatfmt=".3g")
 
 

@@ -1,11 +1,15 @@
-"""The paper's figures, drawn from aggregated tables only.
+"""Figures drawn from aggregated tables only.
 
-    python -m experiments.figures RESULTS_DIR
+    python -m experiments.figures RESULTS_DIR      # the paper's Fig. 1-3 (make paper's layout)
+    python -m experiments.figures SWEEP/aggregate  # the ROC curves of any aggregate
 
-looks for ``fig3/roc.csv`` + ``fig3/auc.csv`` (Fig. 3, ROC curves),
-``fig1/examples_triangles.csv`` (Fig. 1, detections on both maps) and
-``fig2/examples_landmarks.csv`` (Fig. 2, combined map vs ground truth) below
-RESULTS_DIR and writes ``fig1``/``fig2``/``fig3`` as PNG and PDF there.
+For the paper's layout, looks for ``fig3/roc.csv`` + ``fig3/auc.csv`` (Fig. 3,
+ROC curves), ``fig1/examples_triangles.csv`` (Fig. 1, detections on both
+maps) and ``fig2/examples_landmarks.csv`` (Fig. 2, combined map vs ground
+truth) below RESULTS_DIR and writes ``fig1``/``fig2``/``fig3`` as PNG and
+PDF there. A directory holding ``roc.csv`` itself (any sweep's aggregate)
+gets ``roc.png``/``roc.pdf``: one panel per scenario and matcher, one curve
+per SNR, and its ``table.md`` is printed.
 """
 
 from __future__ import annotations
@@ -51,43 +55,64 @@ CALIBRATED_RULE = "chi2:0.01"
 
 def fig3(roc: pd.DataFrame, auc: pd.DataFrame, out: Path, name: str = "fig3",
          table: pd.DataFrame | None = None) -> list[Path]:
-    """Monte Carlo ROC curves, one panel per (landmarks, overlap), one curve per SNR.
+    """Monte Carlo ROC curves, one column per panel, one curve per SNR.
 
-    With ``table``, the (P_FA, P_D) that the calibrated χ²₃ rule achieved is
-    marked on each curve.
+    Panels are the (landmarks, overlap, method, objective) combinations in
+    the tables, in the paper's order where they are the paper's. The top
+    row is the paper's linear plot; the bottom row repeats it with P_FA on
+    a log scale, where the curves crowd the corner. With ``table``, the
+    (P_FA, P_D) that the calibrated χ²₃ rule achieved is marked on each
+    curve.
     """
+    keys = ["n_landmarks", "overlap", "method", "objective"]
+    panels = roc[keys].drop_duplicates().itertuples(index=False, name=None)
+    order = {p: k for k, p in enumerate(FIG3_PANELS)}
+    panels = sorted(panels, key=lambda p: (order.get((p[0], p[1]), len(order)), p))
+    several = len({p[2:] for p in panels}) > 1
     snrs = sorted(roc["snr_db"].unique())
     cmap = plt.get_cmap("viridis")
     colours = {s: cmap(i / max(len(snrs) - 1, 1)) for i, s in enumerate(snrs)}
-    fig, axes = plt.subplots(2, 2, figsize=(6.5, 6.2), sharex=True, sharey=True)
-    for ax, (n, ov), letter in zip(axes.ravel(), FIG3_PANELS, "abcd"):
-        panel = roc[(roc.n_landmarks == n) & np.isclose(roc.overlap, ov)]
-        for snr in snrs:
-            curve = panel[panel.snr_db == snr]
-            if curve.empty:
-                continue
-            a = auc[(auc.n_landmarks == n) & np.isclose(auc.overlap, ov) & (auc.snr_db == snr)]
-            trials = int(a.n_trials.iloc[0])
-            ax.step(curve.p_fa, curve.p_d, where="post", color=colours[snr],
-                    label=f"{snr:g} dB (AUC {a.auc.iloc[0]:.3f})")
-            if table is not None:
-                cal = table[(table.n_landmarks == n) & np.isclose(table.overlap, ov)
-                            & (table.snr_db == snr) & (table.tau == CALIBRATED_RULE)]
-                ax.plot(cal.p_fa, cal.p_d, "o", ms=3.5, mfc="none", color=colours[snr])
-        ax.plot([0, 1], [0, 1], color="0.8", lw=0.6, ls=":")
-        ax.set_title(f"({letter}) {n} landmarks, {ov:.0%} overlap"
-                     + (f", {trials:,} trials" if not panel.empty else ""))
-        ax.set_xlim(0, 1)
-        ax.set_ylim(0, 1.01)
-        ax.grid(alpha=0.3, lw=0.4)
-        ax.legend(loc="lower right", frameon=False, handlelength=1.2)
+    fig, axes = plt.subplots(2, len(panels), figsize=(2.6 * len(panels) + 0.4, 5.6), sharey=True, squeeze=False)
+    for col, ((n, ov, method, objective), letter) in enumerate(zip(panels, "abcdefghijklmnop")):
+        sel = {k: v for k, v in zip(keys, (n, ov, method, objective))}
+
+        def rows(df):
+            mask = np.isclose(df.overlap, ov) & (df.n_landmarks == n) & (df.method == method) \
+                & (df.objective == objective)
+            return df[mask]
+
+        panel, panel_auc = rows(roc), rows(auc)
+        for ax in axes[:, col]:
+            for snr in snrs:
+                curve = panel[panel.snr_db == snr]
+                if curve.empty:
+                    continue
+                a = panel_auc[panel_auc.snr_db == snr]
+                ax.step(curve.p_fa, curve.p_d, where="post", color=colours[snr],
+                        label=f"{snr:g} dB (AUC {a.auc.iloc[0]:.3f})")
+                if table is not None:
+                    cal = rows(table)
+                    cal = cal[(cal.snr_db == snr) & (cal.tau == CALIBRATED_RULE)]
+                    ax.plot(cal.p_fa, cal.p_d, "o", ms=3.5, mfc="none", color=colours[snr])
+            ax.set_ylim(0, 1.01)
+            ax.grid(alpha=0.3, lw=0.4, which="both")
+        trials = int(panel_auc.n_trials.max()) if not panel_auc.empty else 0
+        title = f"({letter}) {n} landmarks, {ov:.0%} overlap"
+        if several:
+            title += f"\n{sel['method']}, LP objective {sel['objective']}"
+        axes[0, col].set_title(f"{title}\n{trials:,} trials per curve")
+        axes[0, col].plot([0, 1], [0, 1], color="0.8", lw=0.6, ls=":")
+        axes[0, col].set_xlim(0, 1)
+        axes[1, col].set_xscale("log")
+        axes[1, col].set_xlim(1e-5, 1)
+        axes[0, col].legend(loc="lower right", frameon=False, handlelength=1.2, fontsize=5.5)
+        axes[0, col].set_xlabel("$P_{FA}$")
+        axes[1, col].set_xlabel("$P_{FA}$ (log scale)")
+    for ax in axes[:, 0]:
+        ax.set_ylabel("probability of detection $P_D$")
     if table is not None:
         fig.text(0.5, 0.005, f"circles: P_FA, P_D achieved by the calibrated rule τ = {CALIBRATED_RULE} "
                  "(χ²₃ tail probability of true pairs)", ha="center", fontsize=6.5)
-    for ax in axes[1]:
-        ax.set_xlabel("probability of false alarm $P_{FA}$")
-    for ax in axes[:, 0]:
-        ax.set_ylabel("probability of detection $P_D$")
     fig.tight_layout(rect=(0, 0.02, 1, 1))
     return _save(fig, out, name)
 
@@ -126,21 +151,27 @@ def fig1(triangles: pd.DataFrame, out: Path, name: str = "fig1") -> list[Path]:
 
 
 def fig2(landmarks: pd.DataFrame, out: Path, name: str = "fig2") -> list[Path]:
-    """Combined map (red squares) against ground truth (crosses)."""
+    """Combined map against ground truth, duplicates (a landmark in two rows) marked."""
     snrs = sorted(landmarks["snr_db"].unique(), reverse=True)
-    fig, axes = plt.subplots(1, len(snrs), figsize=(3.3 * len(snrs), 3.4), squeeze=False)
+    fig, axes = plt.subplots(1, len(snrs), figsize=(3.4 * len(snrs), 3.9), squeeze=False)
     for ax, snr in zip(axes[0], snrs):
         cell = landmarks[(landmarks.snr_db == snr) & (landmarks.trial == landmarks.trial.min())]
         truth, merged = cell[cell.kind == "truth"], cell[cell.kind == "merged"]
+        twice = merged[merged.id.duplicated(keep=False)]
         ax.scatter(truth.x, truth.y, marker="+", s=30, c="k", lw=0.7, label="ground truth")
         ax.scatter(merged.x, merged.y, marker="s", s=14, facecolors="none", edgecolors="tab:red",
                    lw=0.7, label="combined map")
-        dup = int(merged.id.duplicated().sum())
+        ax.scatter(twice.x, twice.y, marker="s", s=14, c="tab:orange", lw=0, label="duplicate rows")
+        for _, rows in twice.groupby("id"):
+            ax.plot(rows.x, rows.y, color="tab:orange", lw=0.6)
         fused = int((merged.origin == "fused").sum())
-        ax.set_title(f"({'ab'[list(snrs).index(snr)]}) {snr:g} dB: {len(merged)} entries, "
-                     f"{fused} fused, {dup} duplicates")
+        ax.set_title(f"({'ab'[list(snrs).index(snr)]}) {snr:g} dB: {len(merged)} rows, {fused} fused, "
+                     f"{twice.id.nunique()} landmarks twice\nτ rule: {cell.tau.iloc[0]}"
+                     + (" (ground truth: no false positive)" if cell.tau.iloc[0] == "oracle" else ""))
+        ax.set_xlabel("x in map p's frame (landmark spacing = 1)")
+        ax.set_ylabel("y in map p's frame")
         ax.set_aspect("equal")
-        ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.07), ncol=2, frameon=False)
+        ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=3, frameon=False)
     fig.tight_layout()
     return _save(fig, out, name)
 
@@ -159,15 +190,32 @@ def draw_all(results: Path) -> list[Path]:
         if (results / "fig2" / "examples_landmarks.csv").exists():
             made += fig2(pd.read_csv(results / "fig2" / "examples_landmarks.csv"), results)
     if not made:
-        raise FileNotFoundError(f"no figure tables below {results}")
+        raise FileNotFoundError(f"no figure tables below {results}: expected fig1/, fig2/ or fig3/ "
+                                "(the paper's layout) or roc.csv (an aggregate directory)")
     return made
 
 
+def draw_aggregate(directory: Path) -> list[Path]:
+    """``roc.png``/``.pdf`` of an aggregate directory (``roc.csv``, ``auc.csv``, ``table.csv``)."""
+    with plt.rc_context(STYLE):
+        return fig3(pd.read_csv(directory / "roc.csv"), pd.read_csv(directory / "auc.csv"), directory, "roc",
+                    table=pd.read_csv(directory / "table.csv"))
+
+
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description="Draw the paper's figures from aggregated tables.")
-    parser.add_argument("results", help="directory holding fig1/, fig2/, fig3/ tables")
+    parser = argparse.ArgumentParser(description="Draw figures from aggregated tables.")
+    parser.add_argument("results", help="an aggregate directory (roc.csv) or one holding fig1/, fig2/, fig3/")
     args = parser.parse_args(argv)
-    for path in draw_all(Path(args.results)):
+    directory = Path(args.results)
+    try:
+        if (directory / "roc.csv").exists():
+            made = draw_aggregate(directory)
+            print((directory / "table.md").read_text())
+        else:
+            made = draw_all(directory)
+    except FileNotFoundError as exc:
+        parser.exit(2, f"error: {exc}\n")
+    for path in made:
         print(path)
 
 

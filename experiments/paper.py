@@ -1,7 +1,7 @@
 """Regenerate the paper's Fig. 1-3 and tables into results/paper/ (the main job).
 
     python -m experiments.paper                 # the paper's 10,000 trials per ROC curve
-    python -m experiments.paper --quick         # 2,000 trials per curve
+    python -m experiments.paper --quick         # 2,000 trials per curve, into outputs/paper-quick
     python -m experiments.paper mc.n_jobs=1     # extra Hydra overrides go to every sweep
 
 Runs three Hydra multiruns (presets ``fig3``, ``fig1``, ``fig2``), each
@@ -35,10 +35,11 @@ def _call(args: list[str]) -> None:
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description="Regenerate the paper's figures and tables.")
     parser.add_argument("--quick", action="store_true", help="2,000 trials per ROC curve (default: 10,000 as in the paper)")
-    parser.add_argument("--out", default="results/paper", help="results directory (default results/paper)")
+    parser.add_argument("--out", help="results directory (default results/paper; with --quick outputs/paper-quick, "
+                        "so a quick run never overwrites the committed results)")
     parser.add_argument("overrides", nargs="*", help="extra Hydra overrides for every sweep")
     args = parser.parse_args(argv)
-    out = Path(args.out)
+    out = Path(args.out or ("outputs/paper-quick" if args.quick else "results/paper"))
     trials = QUICK_FIG3_TRIALS if args.quick else FULL_FIG3_TRIALS
     for fig, extra in (("fig3", [f"mc.n_trials={trials}"]), ("fig1", []), ("fig2", [])):
         _call(["experiments.run", "-m", f"experiment={fig}", *extra,

@@ -21,12 +21,16 @@ checked, for every job of a sweep, before Hydra creates any directory.
 
 from __future__ import annotations
 
+import dataclasses
+import difflib
 import hashlib
 import itertools
 import json
 import logging
 import os
+import re
 import sys
+import typing
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -56,6 +60,15 @@ def _conf_dir() -> str:
 
 
 CONF_DIR = _conf_dir()
+
+
+def dirname(overrides: str) -> str:
+    """A run directory name from Hydra's ``override_dirname``: its escapes
+    dropped and ':' (from τ rules such as chi2:0.01) written as '-'."""
+    return overrides.replace("\\", "").replace(":", "-") or "defaults"
+
+
+OmegaConf.register_new_resolver("dirname", dirname, replace=True)
 register_configs()
 
 
@@ -144,21 +157,15 @@ def run(cfg: DictConfig, output_dir: str | Path) -> Path:
         scenario, n, len(bounds), len(todo), cfg.mc.n_jobs, cfg.mc.backend,
     )
     if todo:
-        # Local workers write their own chunks (no DataFrames shipped back);
-        # dask workers may sit on other machines, so the driver writes theirs.
-        local = cfg.mc.backend == "loky"
-        with _backend(cfg.mc):
-            jobs = (joblib.delayed(_chunk_job)(seed, scenario, matcher, a, b, stem(a, b) if local else None)
-                    for a, b in todo)
-            results = joblib.Parallel(return_as="generator_unordered")(jobs)
-            with tqdm(
-                total=sum(b - a for a, b in todo), unit="trial", desc=f"{cfg.name}",
-                disable=not cfg.mc.progress, file=sys.stderr,
-            ) as bar:
-                for a, b, frames in results:
-                    if frames is not None:
-                        _write_chunk(stem(a, b), *frames)
-                    bar.update(b - a)
+        try:
+            _run_chunks(cfg, scenario, matcher, todo, stem)
+        except KeyboardInterrupt:
+            pass  # joblib may also end its results early when Ctrl-C reaches the workers
+        done = sum(Path(f"{stem(a, b)}.trials.parquet").exists() for a, b in bounds)
+        if done < len(bounds):
+            print(f"interrupted: {done} of {len(bounds)} chunks saved in {chunk_dir}; "
+                  "rerun the same command to resume", file=sys.stderr)
+            raise SystemExit(130)
 
     cell = {**scenario, "method": cfg.matcher.method, "objective": cfg.matcher.objective,
             "use_cov": cfg.matcher.use_cov, "seed": seed, "cell_key": cell_key(scenario)}
@@ -176,6 +183,26 @@ def run(cfg: DictConfig, output_dir: str | Path) -> Path:
             write_parquet_atomic(table, out / f"{name}.parquet")
     log.info("wrote %s (%d rows)", out / "trials.parquet", n_rows)
     return out / "trials.parquet"
+
+
+def _run_chunks(cfg, scenario: dict, matcher: dict, todo, stem) -> None:
+    """Run the missing chunks on the configured backend, each saved as it finishes."""
+    seed = cfg.mc.seed
+    # Local workers write their own chunks (no DataFrames shipped back);
+    # dask workers may sit on other machines, so the driver writes theirs.
+    local = cfg.mc.backend == "loky"
+    with _backend(cfg.mc):
+        jobs = (joblib.delayed(_chunk_job)(seed, scenario, matcher, a, b, stem(a, b) if local else None)
+                for a, b in todo)
+        results = joblib.Parallel(return_as="generator_unordered")(jobs)
+        with tqdm(
+            total=sum(b - a for a, b in todo), unit="trial", desc=f"{cfg.name}",
+            disable=not cfg.mc.progress, file=sys.stderr,
+        ) as bar:
+            for a, b, frames in results:
+                if frames is not None:
+                    _write_chunk(stem(a, b), *frames)
+                bar.update(b - a)
 
 
 def _chunk_job(seed, scenario, matcher, a, b, base: Path | None):
@@ -197,8 +224,21 @@ def _write_chunk(base: Path, trials: pd.DataFrame, pairs: pd.DataFrame) -> None:
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="config")
 def main(cfg: DictConfig) -> None:
     from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
 
-    run(cfg, HydraConfig.get().runtime.output_dir)
+    path = run(cfg, HydraConfig.get().runtime.output_dir)
+    if HydraConfig.get().mode == RunMode.RUN:  # a sweep's numbers come from its aggregate
+        print(headline(pd.read_parquet(path)))
+
+
+def headline(trials: pd.DataFrame) -> str:
+    """One run's numbers per τ rule: detections, P_D / P_FA, merges."""
+    from .aggregate import markdown, summary_table
+
+    cols = {"tau": "τ rule", "n_trials": "trials", "tp": "TP", "fp": "FP", "md": "MD", "precision": "precision",
+            "p_d": "P_D", "p_fa": "P_FA", "success_rate": "merge success", "false_merge_rate": "false merges"}
+    table = summary_table(trials.assign(time_match_s=0.0, time_merge_s=0.0))
+    return markdown(table[list(cols)].rename(columns=cols))
 
 
 def preflight(argv: list[str]) -> None:
@@ -243,8 +283,44 @@ def preflight(argv: list[str]) -> None:
     except ConfigError:
         raise
     except Exception as exc:  # Hydra/OmegaConf composition errors are multi-line
-        text = " ".join(line.strip() for line in str(exc).splitlines() if line.strip())
-        raise ConfigError(text) from None
+        raise ConfigError(_one_line(exc, overrides)) from None
+
+
+def _one_line(exc: BaseException, overrides: list[str]) -> str:
+    """Hydra's composition error as one line naming the key and what is wrong."""
+    causes = [exc]
+    while causes[-1].__cause__ is not None:
+        causes.append(causes[-1].__cause__)
+    text = " ".join(line.strip() for line in str(causes[-1]).splitlines() if line.strip())
+    wrong_type = re.search(r"Value '(.*?)' (?:of type '\w+' )?could not be converted to (\w+)", text)
+    key = re.search(r"(?:full_key|override)[: ]+([\w.]+)", " ".join(str(c) for c in causes))
+    if wrong_type and key:
+        return f"{key[1]}={wrong_type[1]!r} is invalid: expected {_TYPE_NAMES.get(wrong_type[2], wrong_type[2])}"
+    bad_bool = re.search(r"Value '(.*?)' is not a valid bool.*?full_key: ([\w.]+)", text)
+    if bad_bool:
+        return f"{bad_bool[2]}={bad_bool[1]!r} is invalid: expected true or false"
+    missing = (re.search(r"Could not override '([\w.]+)'", text)
+               or re.search(r"Key '\w+' not in '\w+'.*?full_key: ([\w.]+)", text))
+    if missing:
+        near = _nearest_key(missing[1])
+        return f"{missing[1]} is not a config key" + (f"; did you mean {near}?" if near else "")
+    return text
+
+
+_TYPE_NAMES = {"Float": "a number", "Integer": "an integer", "Boolean": "true or false", "String": "a string"}
+
+
+def _nearest_key(key: str) -> str | None:
+    from .schema import Config
+
+    schema, parts = Config, key.split(".")
+    for part in parts[:-1]:
+        hints = typing.get_type_hints(schema)
+        if part not in hints or not dataclasses.is_dataclass(hints[part]):
+            return None
+        schema = hints[part]
+    near = difflib.get_close_matches(parts[-1], list(typing.get_type_hints(schema)), n=1)
+    return ".".join(parts[:-1] + near) if near else None
 
 
 def expand_sweep(overrides) -> list[list[str]]:

@@ -8,8 +8,11 @@ allowed, before any work starts or any file is written.
 
 from __future__ import annotations
 
+import dataclasses
+import difflib
 import importlib.util
 import math
+import typing
 from dataclasses import dataclass, field
 from typing import Optional
 
@@ -87,8 +90,26 @@ def _fail(key: str, value, allowed: str):
     raise ConfigError(f"{key}={value!r} is invalid: {allowed}")
 
 
+def unknown_keys(cfg, schema=Config, prefix: str = "") -> list[tuple[str, str | None]]:
+    """Keys of ``cfg`` the schema does not have, each with the nearest valid key (or None)."""
+    hints = typing.get_type_hints(schema)
+    found = []
+    for key in cfg.keys():
+        if key == "hydra" and not prefix:
+            continue
+        if key not in hints:
+            near = difflib.get_close_matches(str(key), list(hints), n=1)
+            found.append((prefix + str(key), prefix + near[0] if near else None))
+        elif dataclasses.is_dataclass(hints[key]):
+            found += unknown_keys(cfg[key], hints[key], f"{prefix}{key}.")
+    return found
+
+
 def validate(cfg) -> None:
-    """Range-check a composed config; raise ConfigError on the first bad key."""
+    """Check a composed config against the schema and the allowed ranges;
+    raise ConfigError on the first bad key."""
+    for key, near in unknown_keys(cfg):
+        raise ConfigError(f"{key} is not a config key" + (f"; did you mean {near}?" if near else ""))
     s, m, mc = cfg.scenario, cfg.matcher, cfg.mc
     if s.kind not in KINDS:
         _fail("scenario.kind", s.kind, f"must be one of {list(KINDS)}")

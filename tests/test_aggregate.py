@@ -1,0 +1,80 @@
+"""Aggregation into ROC curves and tables, figures from tables, docs from results."""
+
+import os
+
+import numpy as np
+import pandas as pd
+
+from experiments.aggregate import aggregate
+from experiments.docs import refresh
+from experiments.examples import _triangle_status
+from experiments.figures import draw_aggregate, draw_all
+from harness_utils import cli
+
+
+def test_multirun_end_to_end_through_aggregation_and_figures(tmp_path):
+    results = tmp_path / "results"
+    fig3 = cli(["-m", "experiment=fig3", "mc.n_trials=12", "mc.chunk_size=6",
+                "scenario.snr_db=15,40", f"aggregate_dir={results / 'fig3'}",
+                "mc.progress=false"], tmp_path, timeout=300)
+    assert fig3.returncode == 0, fig3.stderr[-2000:]
+    smoke = cli(["-m", "experiment=smoke", f"aggregate_dir={results / 'fig1'}"], tmp_path)
+    assert smoke.returncode == 0, smoke.stderr[-2000:]
+    (results / "fig2").mkdir()
+    os.link(results / "fig1" / "examples_landmarks.csv", results / "fig2" / "examples_landmarks.csv")
+
+    auc = pd.read_csv(results / "fig3" / "auc.csv")
+    assert len(auc) == 8 and auc.n_trials.eq(12).all()
+    assert (auc[auc.snr_db == 40].auc.to_numpy() > auc[auc.snr_db == 15].auc.to_numpy()).all()
+    table = pd.read_csv(results / "fig3" / "table.csv")
+    assert set(table.tau) == {"oracle", "chi2:0.01", "chi2:0.001"} and len(table) == 24
+    roc = pd.read_csv(results / "fig3" / "roc.csv")
+    assert roc.groupby(["n_landmarks", "overlap", "snr_db"]).p_fa.is_monotonic_increasing.all()
+    md = (results / "fig1" / "table.md").read_text()
+    assert md.startswith("|") and "p_d" in md and "p_fa" in md
+    examples = pd.read_csv(results / "fig1" / "examples_landmarks.csv")
+    assert set(examples["kind"]) == {"p", "q", "merged", "truth"}
+
+    made = draw_all(results)
+    assert {p.name for p in made} == {f"fig{i}.{e}" for i in (1, 2, 3) for e in ("png", "pdf")}
+    assert all(p.stat().st_size > 10_000 for p in made)
+    made = draw_aggregate(results / "fig3")
+    assert {p.name for p in made} == {"roc.png", "roc.pdf"}
+
+
+def test_tau_rules_split_across_jobs_count_each_trial_once(tmp_path):
+    common = ["scenario=small", "mc.n_trials=60", "mc.progress=false"]
+    split = cli(["-m", "matcher.taus=[chi2:0.01],[chi2:0.05],[-3]", *common, f"hydra.sweep.dir={tmp_path / 's'}"],
+                tmp_path)
+    one = cli(["matcher.taus=[chi2:0.01,chi2:0.05,-3]", *common, f"hydra.run.dir={tmp_path / 'one'}"], tmp_path)
+    assert split.returncode == 0 and one.returncode == 0, split.stderr[-2000:] + one.stderr[-2000:]
+    aggregate([tmp_path / "one"], tmp_path / "one_agg")
+    for name in ("auc.csv", "roc.csv"):
+        pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "s" / "aggregate" / name),
+                                      pd.read_csv(tmp_path / "one_agg" / name))
+    a = pd.read_csv(tmp_path / "s" / "aggregate" / "table.csv").sort_values("tau", ignore_index=True)
+    b = pd.read_csv(tmp_path / "one_agg" / "table.csv").sort_values("tau", ignore_index=True)
+    pd.testing.assert_frame_equal(a, b)
+    assert pd.read_csv(tmp_path / "one_agg" / "auc.csv").n_trials.item() == 60
+
+
+def test_example_triangle_status_prefers_the_telling_pair():
+    pairs = np.array([[0, 5], [0, 6], [1, 7], [2, 8]])
+    is_true = np.array([True, False, False, True])
+    declared = np.array([True, False, False, False])
+    common = np.array([[0, 5], [1, 9], [2, 8]])
+    status = _triangle_status(4, 0, pairs, is_true, declared, common)
+    assert list(status) == ["tp", "unpaired", "md", "other"]
+
+
+def test_docs_includes_are_refreshed_from_results(tmp_path):
+    (tmp_path / "results").mkdir()
+    (tmp_path / "docs").mkdir()
+    (tmp_path / "results" / "t.md").write_text("# Title\n\n## Part\n\n| a |\n|---|\n| 1 |\n![f](f.png)\n")
+    page = tmp_path / "docs" / "results.md"
+    page.write_text("intro\n<!-- include: results/t.md -->\nold numbers\n<!-- end include -->\nrest\n")
+    assert refresh(page, tmp_path) == ["results/t.md"]
+    text = page.read_text()
+    assert "old numbers" not in text and "# Title" not in text
+    assert "#### Part" in text and "| 1 |" in text and "![f](../results/f.png)" in text
+    assert text.startswith("intro\n") and text.endswith("<!-- end include -->\nrest\n")

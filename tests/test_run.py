@@ -1,0 +1,122 @@
+"""Running cells: bit-identical results for any workers, chunks, backend or resume; interruption; output."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pandas as pd
+import pytest
+
+from experiments.run import run
+from harness_utils import ROOT, cli, digest, small
+
+
+def test_n_jobs_and_chunk_size_do_not_change_results(tmp_path):
+    a = run(small(n_jobs=1, chunk_size=7), tmp_path / "a").parent
+    b = run(small(n_jobs=2, chunk_size=4), tmp_path / "b").parent
+    for name in ("trials.parquet", "pairs.parquet"):
+        assert digest(a / name) == digest(b / name), name
+    trials = pd.read_parquet(a / "trials.parquet")
+    assert sorted(trials.trial.unique()) == list(range(30))
+    assert set(trials.tau) == {"oracle", "chi2:0.01", "chi2:0.001"}
+
+
+def test_resume_after_deleting_chunks_is_identical(tmp_path):
+    out = run(small(), tmp_path).parent
+    before = {n: digest(out / n) for n in ("trials.parquet", "pairs.parquet")}
+    chunks = sorted((out / "chunks").glob("*.trials.parquet"))
+    for path in chunks[1:3]:
+        path.unlink()
+    mtime = chunks[0].stat().st_mtime_ns
+    run(small(), tmp_path)
+    assert chunks[0].stat().st_mtime_ns == mtime  # finished chunk not recomputed
+    assert {n: digest(out / n) for n in before} == before
+
+
+def test_chunks_of_other_code_are_not_reused(tmp_path, monkeypatch):
+    out = run(small(), tmp_path).parent
+    before = set((out / "chunks").glob("*.trials.parquet"))
+    monkeypatch.setattr("experiments.run.code_digest", lambda: "another version of the library")
+    run(small(), tmp_path)
+    after = set((out / "chunks").glob("*.trials.parquet"))
+    assert len(after - before) == len(before)  # every chunk recomputed under a new key
+
+
+#: A cell slow enough (consensus, ~20 ms a trial, 12 chunks) that stopping it after 3 chunks has seconds of margin.
+SLOW_CELL = ["scenario.snr_db=30", "matcher.method=consensus", "matcher.taus=[chi2:0.01]", "mc.n_trials=120",
+             "mc.chunk_size=10", "mc.n_jobs=1", "mc.progress=false"]
+
+
+def _start(args, cwd):
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    return subprocess.Popen([sys.executable, "-m", "experiments.run", *args], cwd=cwd, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+
+
+def _wait_for_chunks(cwd, count):
+    deadline = time.time() + 120
+    while time.time() < deadline:
+        done = list(cwd.rglob("chunks/*.trials.parquet"))
+        if len(done) >= count:
+            return done[0].parent
+        time.sleep(0.05)
+    raise AssertionError("no chunks written")
+
+
+@pytest.mark.parametrize("how", [signal.SIGKILL, signal.SIGINT])
+def test_interrupted_run_resumes_to_the_uninterrupted_result(tmp_path, how):
+    proc = _start([*SLOW_CELL, "name=cut"], tmp_path)
+    chunk_dir = _wait_for_chunks(tmp_path, 3)
+    os.killpg(proc.pid, how)  # the whole process group, as Ctrl-C in a terminal
+    _, err = proc.communicate()
+    assert not (chunk_dir.parent / "trials.parquet").exists()
+    if how == signal.SIGINT:
+        assert proc.returncode == 130
+        lines = [line for line in err.splitlines() if "][INFO]" not in line]
+        assert len(lines) == 1 and lines[0].startswith("interrupted: ") and "rerun the same command" in lines[0]
+    assert cli([*SLOW_CELL, "name=cut"], tmp_path).returncode == 0
+    assert cli([*SLOW_CELL, "name=ref"], tmp_path).returncode == 0
+    ref_dir = next((tmp_path / "outputs" / "runs" / "ref").iterdir())
+    for name in ("trials.parquet", "pairs.parquet"):
+        assert digest(chunk_dir.parent / name) == digest(ref_dir / name)
+
+
+def test_a_single_run_prints_its_numbers_and_names_dirs_plainly(tmp_path):
+    proc = cli(["scenario=small", "mc.n_trials=20", "mc.progress=false", "matcher.taus=[oracle,chi2:0.01]"], tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "| τ rule" in proc.stdout and "chi2:0.01" in proc.stdout and "P_FA" in proc.stdout
+    (run_dir,) = (tmp_path / "outputs" / "runs" / "default").iterdir()
+    assert "\\" not in run_dir.name and "chi2-0.01" in run_dir.name
+    assert "RuntimeWarning" not in proc.stderr
+
+
+def test_hydra_joblib_launcher_runs_jobs_in_parallel(tmp_path):
+    proc = cli(["-m", "experiment=smoke", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2",
+                "mc.n_jobs=1", "mc.progress=false"], tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    sweep = tmp_path / "outputs" / "sweeps" / "smoke"
+    assert len(list(sweep.glob("*/trials.parquet"))) == 2
+    assert (sweep / "aggregate" / "table.csv").exists()
+
+
+def test_dask_backend_gives_identical_results(tmp_path):
+    distributed = pytest.importorskip("dask.distributed")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster:
+        d = run(small(backend="dask", address=cluster.scheduler_address), tmp_path / "dask").parent
+    ref = run(small(), tmp_path / "loky").parent
+    for name in ("trials.parquet", "pairs.parquet"):
+        assert digest(d / name) == digest(ref / name)
+
+
+def test_victoria_park_preset_runs_real_data(tmp_path):
+    proc = cli(["-m", "experiment=victoria_park", "scenario.cut=3483", "scenario.source=reference",
+                "matcher.method=paper,consensus", "matcher.use_cov=false", "mc.progress=false"], tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    runs = sorted((tmp_path / "outputs" / "sweeps" / "victoria_park").glob("*/trials.parquet"))
+    trials = pd.concat([pd.read_parquet(r) for r in runs]).set_index("method")
+    assert list(trials.n_p) == [82, 82] and list(trials.n_common_landmarks) == [66, 66]
+    assert trials.loc["consensus", "rot_err_deg"] < 1 and trials.loc["consensus", "trans_err"] < 1
+    assert (tmp_path / "outputs" / "sweeps" / "victoria_park" / "aggregate" / "table.csv").exists()

@@ -1,0 +1,95 @@
+"""Config composition and validation: every preset composes, bad values fail fast with one line."""
+
+from pathlib import Path
+
+import pytest
+from omegaconf import OmegaConf
+
+from experiments.run import CONF_DIR, expand_sweep
+from experiments.schema import ConfigError, validate
+from harness_utils import cli, compose_config
+
+PRESETS = sorted(p.stem for p in (Path(CONF_DIR) / "experiment").glob("*.yaml"))
+GROUPS = {g: sorted(p.stem for p in (Path(CONF_DIR) / g).glob("*.yaml")) for g in ("scenario", "matcher", "mc")}
+
+
+@pytest.mark.parametrize("group, option", [(g, o) for g, opts in GROUPS.items() for o in opts])
+def test_every_group_option_composes_to_its_file(group, option):
+    # A real data set is one fixed map pair: one trial.
+    extra = ["mc.n_trials=1"] if option == "victoria_park" else []
+    cfg = compose_config([f"{group}={option}", *extra])
+    validate(cfg)
+    expected = OmegaConf.load(Path(CONF_DIR) / group / f"{option}.yaml")
+    for key, value in expected.items():
+        if f"{group}.{key}" not in {e.split("=")[0] for e in extra}:
+            assert cfg[group][key] == value, (group, option, key)
+
+
+@pytest.mark.parametrize("preset", PRESETS)
+def test_every_preset_composes_and_sweeps_valid_jobs(preset):
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    cfg = compose_config([f"experiment={preset}"], hydra=True)
+    assert cfg.name == preset and cfg.hydra.job.chdir is False
+    params = [f"{k}={v}" for k, v in cfg.hydra.sweeper.params.items()]
+    jobs = expand_sweep(OverridesParser.create().parse_overrides(params))
+    assert len(jobs) >= 2
+    for job in jobs[:: max(1, len(jobs) // 4)]:
+        validate(compose_config([f"experiment={preset}", *job]))
+
+
+def test_fig3_preset_is_the_papers_grid():
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    cfg = compose_config(["experiment=fig3"], hydra=True)
+    sweep = OverridesParser.create().parse_overrides([f"{k}={v}" for k, v in cfg.hydra.sweeper.params.items()])
+    cells = {tuple(float(o.split("=")[1]) for o in job) for job in expand_sweep(sweep)}
+    assert cells == {(n, ov, snr) for n in (10, 20) for ov in (0.75, 0.5) for snr in range(0, 45, 5)}
+    # 10,000 trials per curve as in the paper, on both cores: cells as parallel jobs.
+    assert cfg.mc.n_trials == 10000
+    assert cfg.hydra.launcher.n_jobs == 2 and cfg.mc.n_jobs == 1
+
+
+@pytest.mark.parametrize(
+    "override, key",
+    [
+        ("scenario.overlap=1.5", "scenario.overlap"),
+        ("scenario.overlap=0", "scenario.overlap"),
+        ("scenario.n_landmarks=2", "scenario.n_landmarks"),
+        ("mc.n_jobs=0", "mc.n_jobs"),
+        ("mc.chunk_size=0", "mc.chunk_size"),
+        ("matcher.objective=max", "matcher.objective"),
+        ("matcher.taus=[chi2:2]", "matcher.taus"),
+        ("mc.backend=spark", "mc.backend"),
+        ("+scenario.snrdb=30", "scenario.snrdb"),
+    ],
+)
+def test_validate_names_the_key(override, key):
+    with pytest.raises(ConfigError, match=key):
+        validate(compose_config([override]))
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["scenario.overlap=1.5"], "scenario.overlap=1.5 is invalid: must be in (0, 1]"),
+        (["-m", "scenario.n_landmarks=2,10"], "scenario.n_landmarks"),
+        (["-m", "experiment=smoke", "mc.n_jobs=0"], "mc.n_jobs"),
+        (["scenario.snrdb=30"], "scenario.snrdb is not a config key; did you mean scenario.snr_db?"),
+        (["+scenario.snrdb=30"], "scenario.snrdb is not a config key; did you mean scenario.snr_db?"),
+        (["matcher.tau=chi2:0.01"], "matcher.tau is not a config key; did you mean matcher.taus?"),
+        (["scenario.snr_db=loud"], "scenario.snr_db='loud' is invalid: expected a number"),
+        (["mc.n_trials=abc"], "mc.n_trials='abc' is invalid: expected an integer"),
+        (["mc.progress=maybe"], "mc.progress='maybe' is invalid: expected true or false"),
+        (["-m", "experiment=smoke", "mc.n_jobs=2"], "mc.n_jobs=2 is invalid: must be 1 under hydra/launcher=joblib"),
+        (["-m", "scenario.snr_db=10,nope"], "scenario.snr_db='nope' is invalid: expected a number"),
+    ],
+)
+def test_invalid_overrides_fail_fast_and_write_nothing(tmp_path, args, message):
+    if "experiment=smoke" in args and "mc.n_jobs=2" in args:
+        args = [*args, "hydra/launcher=joblib"]
+    proc = cli(args, tmp_path)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error:") and message in lines[0], proc.stderr
+    assert list(tmp_path.iterdir()) == []
