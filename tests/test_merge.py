@@ -14,7 +14,7 @@ def test_zero_noise_full_overlap_recovers_everything(rng):
     perm = rng.permutation(60)
     theta, t = 2.5, np.array([-4.0, 9.0])
     P, Q = truth, truth[perm] @ mm.rotation(theta).T + t
-    res = mm.merge_maps(P, Q, sigma=1e-3)
+    res = mm.merge_maps(P, Q, sigma=1e-3, method="paper")
     assert res.matched
     assert res.pairs.shape == (60, 2)
     np.testing.assert_array_equal(perm[res.pairs[:, 1]], res.pairs[:, 0])
@@ -26,7 +26,7 @@ def test_zero_noise_full_overlap_recovers_everything(rng):
 
 def test_combined_map_rows_and_provenance():
     sc = mm.simulate.make_pair(50, 0.6, 40, rng=8)
-    res = mm.merge_maps(sc.p, sc.q, sc.sigma)
+    res = mm.merge_maps(sc.p, sc.q, sc.sigma, method="paper")
     k = res.pairs.shape[0]
     assert res.merged.shape == (k + 2 * (50 - k), 2)
     assert list(np.unique(res.origin)) == ["fused", "p", "q"]
@@ -51,8 +51,8 @@ def _rigid(points, phi, shift):
 )
 def test_rigid_motion_of_q_moves_only_the_transform(phi, sx, sy, seed):
     sc = mm.simulate.make_pair(30, 0.75, 40, rng=seed)
-    base = mm.merge_maps(sc.p, sc.q, sc.sigma)
-    moved = mm.merge_maps(sc.p, _rigid(sc.q, phi, [sx, sy]), sc.sigma)
+    base = mm.merge_maps(sc.p, sc.q, sc.sigma, method="paper")
+    moved = mm.merge_maps(sc.p, _rigid(sc.q, phi, [sx, sy]), sc.sigma, method="paper")
     np.testing.assert_array_equal(moved.pairs, base.pairs)
     np.testing.assert_array_equal(moved.declared, base.declared)
     if base.matched:
@@ -62,7 +62,7 @@ def test_rigid_motion_of_q_moves_only_the_transform(phi, sx, sy, seed):
 
 
 def _oracle_counts(sc, objective="lr"):
-    res = mm.merge_maps(sc.p, sc.q, sc.sigma, tau=-np.inf, objective=objective)
+    res = mm.merge_maps(sc.p, sc.q, sc.sigma, tau=-np.inf, method="paper", objective=objective)
     vp, vq = res.tri_p.vertices, res.tri_q.vertices
     is_true, _ = metrics.triangle_labels(sc.ids_p, sc.ids_q, vp, vq, res.triangle_pairs)
     n_common = len(metrics.common_triangles(sc.ids_p, sc.ids_q, vp, vq))
@@ -70,23 +70,21 @@ def _oracle_counts(sc, objective="lr"):
     return metrics.detection_counts(is_true, res.triangle_log_lr >= log_tau, n_common)
 
 
-def test_paper_fig1_range():
-    """Paper Fig. 1: 23 TP / 83 MD at 40 dB, 5 TP / 62 MD at 30 dB, 0 FP.
+def test_paper_fig1_example_is_a_typical_trial():
+    """The paper's Fig. 1 trial (oracle τ): 23 TP at 40 dB and 5 TP at 30 dB, 0 FP.
 
-    One chance congruence sets the oracle τ, so single trials scatter widely
-    (measured TP at 40 dB over seeds 0-11: 1 to 117); the means are stable.
+    One chance congruence sets the oracle τ, so single trials scatter widely;
+    the paper's trial must lie within the central 95 % of ours, and 30 dB
+    must detect far fewer than 40 dB.
     """
-    tp, common = {}, {}
-    for snr in (40, 30):
-        rows = [_oracle_counts(mm.simulate.make_pair(100, 0.75, snr, rng=s)) for s in range(8)]
-        for r in rows:
-            print(f"{snr} dB: TP={r['tp']:3d} MD={r['md']:3d} FP={r['fp']} common={r['common']}")
-            assert r["fp"] == 0
-        tp[snr] = np.mean([r["tp"] for r in rows])
-        common[snr] = np.mean([r["common"] for r in rows])
-    assert tp[40] < 0.75 * common[40]
-    assert 1 <= tp[30] < 0.2 * common[30]
-    assert tp[30] < tp[40]
+    tp = {}
+    for snr, paper_tp in ((40, 23), (30, 5)):
+        rows = [_oracle_counts(mm.simulate.make_pair(100, 0.75, snr, rng=s)) for s in range(40)]
+        assert all(r["fp"] == 0 for r in rows)
+        tp[snr] = np.array([r["tp"] for r in rows])
+        low, high = np.percentile(tp[snr], [2.5, 97.5])
+        assert low <= paper_tp <= high, (snr, low, high)
+    assert np.median(tp[30]) < 0.1 * np.median(tp[40])
 
 
 def test_loglr_objective_loses_true_pairs():
@@ -103,21 +101,11 @@ def test_loglr_objective_loses_true_pairs():
 def test_unrelated_maps_give_no_match():
     a = mm.simulate.make_pair(10, 1.0, 40, rng=1)
     b = mm.simulate.make_pair(10, 1.0, 40, rng=2)
-    res = mm.merge_maps(a.p, b.q, a.sigma)
+    res = mm.merge_maps(a.p, b.q, a.sigma, method="paper")
     assert not res.matched and not res.declared.any()
     assert np.isnan(res.theta) and np.all(np.isnan(res.t))
     assert res.pairs.shape == (0, 2) and res.alignment is None
     np.testing.assert_array_equal(res.merged, a.p)
-
-
-def test_threshold_forms():
-    assert mm.resolve_log_tau("chi2:0.05") == pytest.approx(-0.5 * 7.814727903251178)
-    assert mm.resolve_log_tau(-3) == -3.0
-    assert mm.resolve_log_tau("-2.5") == -2.5
-    assert mm.resolve_log_tau(float("-inf")) == -np.inf
-    for bad in ("chi2:1.5", "chi2:x", "oracle", float("nan"), None):
-        with pytest.raises(ValueError, match="tau"):
-            mm.resolve_log_tau(bad)
 
 
 @pytest.mark.parametrize(

@@ -41,7 +41,7 @@ def test_oracle_tau_gives_zero_fp(rng):
 
 def test_labels_and_common_triangles():
     sc = mm.simulate.make_pair(40, 0.75, 60, rng=4)
-    res = mm.merge_maps(sc.p, sc.q, sc.sigma)
+    res = mm.merge_maps(sc.p, sc.q, sc.sigma, method="paper")
     vp, vq = res.tri_p.vertices, res.tri_q.vertices
     common = metrics.common_triangles(sc.ids_p, sc.ids_q, vp, vq)
     for i, j in common:

@@ -1,0 +1,67 @@
+"""Consensus verification (mapmerge.consensus): detections, association, no match on unrelated maps."""
+
+import numpy as np
+import pytest
+
+import mapmerge as mm
+from mapmerge import metrics
+
+
+def _counts(sc, res):
+    vp, vq = res.tri_p.vertices, res.tri_q.vertices
+    is_true, _ = metrics.triangle_labels(sc.ids_p, sc.ids_q, vp, vq, res.triangle_pairs)
+    n_common = len(metrics.common_triangles(sc.ids_p, sc.ids_q, vp, vq))
+    return metrics.detection_counts(is_true, res.declared, n_common)
+
+
+@pytest.mark.parametrize("snr", [40, 30])
+def test_consensus_detects_common_triangles_without_false_merges(snr):
+    for seed in range(4):
+        sc = mm.simulate.make_pair(100, 0.75, snr, rng=seed)
+        res = mm.merge_maps(sc.p, sc.q, sc.sigma, method="consensus")
+        c = _counts(sc, res)
+        err = metrics.map_errors(sc, res)
+        print(snr, seed, c, err["wrong_pairs"], err["duplicates"])
+        assert c["tp"] >= 0.95 * c["common"]
+        assert err["success"] and err["wrong_pairs"] <= 2
+        assert err["duplicates"] <= err["missed_pairs"] + err["wrong_pairs"]
+        # Common landmarks appear once: the combined map has one row per landmark.
+        assert len(res.merged) == 2 * 100 - err["correct_pairs"] - err["wrong_pairs"]
+
+
+def test_consensus_says_no_match_on_unrelated_maps():
+    for seed in range(10):
+        sc = mm.simulate.make_pair(100, 0.75, 30, rng=seed, unrelated=True)
+        assert sc.n_common == 0
+        res = mm.merge_maps(sc.p, sc.q, sc.sigma, method="consensus")
+        assert not res.matched and np.isnan(res.theta) and not res.declared.any()
+
+
+def _targets(n_trials: int, n_unrelated: int):
+    """Common triangles detected at 40 / 30 dB, merge success at 20 dB, false merges at 30 dB."""
+    for snr, need in ((40, 0.95), (30, 0.90)):
+        tp = common = fp = 0
+        for seed in range(n_trials):
+            sc = mm.simulate.make_pair(100, 0.75, snr, rng=seed)
+            c = _counts(sc, mm.merge_maps(sc.p, sc.q, sc.sigma, method="consensus"))
+            tp, common, fp = tp + c["tp"], common + c["common"], fp + c["fp"]
+        assert tp >= need * common
+        assert fp <= 0.01 * tp  # only coincident-landmark swaps remain
+    success = sum(
+        metrics.map_errors(sc, mm.merge_maps(sc.p, sc.q, sc.sigma, method="consensus"))["success"]
+        for sc in (mm.simulate.make_pair(100, 0.75, 20, rng=s) for s in range(n_trials))
+    )
+    assert success >= 0.97 * n_trials
+    for seed in range(n_unrelated):
+        sc = mm.simulate.make_pair(100, 0.75, 30, rng=seed, unrelated=True)
+        assert not mm.merge_maps(sc.p, sc.q, sc.sigma, method="consensus").matched
+
+
+def test_consensus_targets_small():
+    """A small version of the consensus targets (the full one: results/compare, and the slow test)."""
+    _targets(n_trials=12, n_unrelated=40)
+
+
+@pytest.mark.slow
+def test_consensus_targets_on_60_trials_per_snr():
+    _targets(n_trials=60, n_unrelated=300)

@@ -1,0 +1,71 @@
+"""Matching (mapmerge.matching): τ forms, the LP, correspondences and their conflict rule."""
+
+import numpy as np
+import pytest
+
+import mapmerge as mm
+from mapmerge.matching import assign, assign_sparse, correspondences
+
+
+def test_threshold_forms():
+    assert mm.resolve_log_tau("chi2:0.05") == pytest.approx(-0.5 * 7.814727903251178)
+    assert mm.resolve_log_tau(-3) == -3.0
+    assert mm.resolve_log_tau("-2.5") == -2.5
+    assert mm.resolve_log_tau(float("-inf")) == -np.inf
+    for bad in ("chi2:1.5", "chi2:x", "oracle", float("nan"), None):
+        with pytest.raises(ValueError, match="tau"):
+            mm.resolve_log_tau(bad)
+
+
+def _sequential_greedy(vertices_p, vertices_q, log_lr):
+    """The documented rule, one candidate at a time (most votes, best score, lowest indices)."""
+    cand = {}
+    for tp, tq, s in zip(vertices_p, vertices_q, log_lr):
+        for i, j in zip(tp, tq):
+            votes, best = cand.get((i, j), (0, -np.inf))
+            cand[(i, j)] = (votes + 1, max(best, s))
+    used_p, used_q, keep = set(), set(), []
+    for (i, j), _ in sorted(cand.items(), key=lambda kv: (-kv[1][0], -kv[1][1], kv[0][0], kv[0][1])):
+        if i not in used_p and j not in used_q:
+            used_p.add(i), used_q.add(j), keep.append((i, j))
+    return sorted(keep), len(cand) - len(keep)
+
+
+def test_correspondences_equal_the_sequential_greedy():
+    rng = np.random.default_rng(7)
+    for _ in range(1500):
+        m, n = int(rng.integers(1, 12)), int(rng.integers(3, 25))
+        vp = np.array([rng.choice(n, 3, replace=False) for _ in range(m)])
+        vq = np.array([rng.choice(n, 3, replace=False) for _ in range(m)])
+        scores = np.round(rng.normal(size=m), 1)  # ties in score happen
+        pairs, n_conflicts = correspondences(vp, vq, scores)
+        keep, dropped = _sequential_greedy(vp, vq, scores)
+        assert [tuple(p) for p in pairs.tolist()] == keep
+        assert n_conflicts == dropped
+
+
+def test_lp_objectives_and_the_sparse_lp_agree_with_brute_force(rng):
+    """The LP's tentative pairs are the best one-to-one assignment (objectives Σ Λ and Σ log Λ)."""
+    from itertools import permutations
+
+    for _ in range(30):
+        log_lr = -rng.exponential(2.0, size=(4, 5))
+        for objective, weight in (("lr", np.exp(log_lr)), ("loglr", log_lr)):
+            best = max(permutations(range(5), 4), key=lambda cols: weight[np.arange(4), cols].sum())
+            np.testing.assert_array_equal(assign(log_lr, objective), np.stack([np.arange(4), best], axis=1))
+        # With every pair a candidate, the sparse LP (each row free to stay unpaired at Λ = 0) pairs every
+        # row as the dense LP does.
+        cand = np.argwhere(np.ones((4, 5), bool))
+        chosen = assign_sparse(log_lr[cand[:, 0], cand[:, 1]], cand, (4, 5), "lr")
+        np.testing.assert_array_equal(chosen, assign(log_lr, "lr"))
+
+
+def test_correspondences_count_the_dropped_rivals():
+    pairs, n_conflicts = correspondences(np.array([[0, 1, 2], [0, 1, 3]]), np.array([[5, 6, 7], [5, 6, 8]]),
+                                         np.array([-1.0, -2.0]))
+    np.testing.assert_array_equal(pairs, [[0, 5], [1, 6], [2, 7], [3, 8]])
+    assert n_conflicts == 0
+    pairs, n_conflicts = correspondences(np.array([[0, 1, 2], [0, 1, 2]]), np.array([[5, 6, 7], [5, 6, 8]]),
+                                         np.array([-1.0, -2.0]))
+    np.testing.assert_array_equal(pairs, [[0, 5], [1, 6], [2, 7]])  # the better-scored triangle wins landmark 2
+    assert n_conflicts == 1
