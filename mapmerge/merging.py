@@ -165,7 +165,10 @@ def merge_maps(P, Q, sigma, tau=DEFAULT_TAU, method="consensus", objective="lr",
         finite, distinct, not all collinear.
     sigma : float
         Per-coordinate standard deviation of one landmark's position, in map
-        units (metres for metric maps), > 0.
+        units (metres for metric maps), > 0. Measured on 100-landmark maps
+        (``python -m experiments.sigma``): ``consensus`` loses nothing when
+        σ is overstated 2x, but at half the true σ its gates reject about a
+        fifth of the true pairs; when unsure, overstate σ.
     tau : float or str, default ``"chi2:0.01"``
         Threshold: a log-LR value, or ``"chi2:P"`` for the χ²₃ rule
         ``log τ = -½ χ²₃⁻¹(1 - P)``.
