@@ -130,10 +130,11 @@ def _run_slice(root_seed: int, scenario: dict, matcher: dict, ks: np.ndarray):
     B = len(sc)
     method = get_method(matcher["method"])
     taus = list(matcher["taus"]) if method.uses_tau else ["none"]
-    variances = {}
+    covariances, first_pose = {}, None
+    if dataset is not None:
+        first_pose = (dataset.theta_first_pose, dataset.t_first_pose[None])
     if matcher.get("use_cov") and dataset is not None:
-        variances = {"var_p": (np.trace(dataset.cov_p, axis1=1, axis2=2) / 2)[None],
-                     "var_q": (np.trace(dataset.cov_q, axis1=1, axis2=2) / 2)[None]}
+        covariances = {"cov_p": dataset.cov_p[None], "cov_q": dataset.cov_q[None]}
 
     clock = time.perf_counter()
     match = match_stage(sc.p, sc.q, sc.sigma, method.name, matcher.get("objective", "lr"), _loosest_tau(taus))
@@ -148,15 +149,16 @@ def _run_slice(root_seed: int, scenario: dict, matcher: dict, ks: np.ndarray):
         log_tau = rule_log_tau(rule, match, lp_true if match is not None else None, B)
         declared = None if match is None else match.log_lr >= log_tau[match.trial]
         if last is None:
-            row = _evaluate(sc, match, log_tau, method.name, variances, n_common, lp_true, lp_consistent)
+            row = _evaluate(sc, match, log_tau, method.name, covariances, n_common, lp_true, lp_consistent, first_pose)
         else:
             # A trial whose declared pairs did not change merges as under the previous rule.
             row = {key: value.copy() for key, value in last[1].items()}
             sub = np.flatnonzero(np.bincount(match.trial[declared != last[0]], minlength=B))
             if sub.size:
                 part = _evaluate(sc.take(sub), match.take(sub), log_tau[sub], method.name,
-                                 {k: v[sub] for k, v in variances.items()}, n_common[sub],
-                                 lp_true[np.isin(match.trial, sub)], lp_consistent[np.isin(match.trial, sub)])
+                                 {k: v[sub] for k, v in covariances.items()}, n_common[sub],
+                                 lp_true[np.isin(match.trial, sub)], lp_consistent[np.isin(match.trial, sub)],
+                                 first_pose)
                 for key, value in part.items():
                     row[key][sub] = value
         last = declared, row
@@ -182,16 +184,24 @@ def _triangles(sc, match):
     return triangulate_batch(sc.p), triangulate_batch(sc.q)
 
 
-def _evaluate(sc, match, log_tau, method, variances, n_common, lp_true, lp_consistent) -> dict:
-    """Merge at log τ and score against the truth: detection counts and map errors per trial."""
-    merged = merge_at(sc.p, sc.q, sc.sigma, match, log_tau, method, **variances)
+def _evaluate(sc, match, log_tau, method, covariances, n_common, lp_true, lp_consistent, first_pose=None) -> dict:
+    """Merge at log τ and score against the truth: detection counts and map errors per trial.
+
+    ``first_pose`` (θ, t) of a real data set adds the errors against its
+    second truth, the transform between the agents' first poses.
+    """
+    merged = merge_at(sc.p, sc.q, sc.sigma, match, log_tau, method, **covariances)
     if match is not None and merged.triangle_pairs is match.triangle_pairs:
         is_true, consistent = lp_true, lp_consistent  # the LP's own pairs: labelled once
     else:
         is_true, consistent = pair_labels(sc, merged.tri_p, merged.tri_q, merged.tri_trial, merged.triangle_pairs)
-    return {**metrics.detection_counts_batch(merged.tri_trial, is_true, merged.declared, n_common),
-            "order_flips": np.bincount(merged.tri_trial[is_true & ~consistent], minlength=len(sc)),
-            **metrics.map_errors_batch(sc, merged)}
+    row = {**metrics.detection_counts_batch(merged.tri_trial, is_true, merged.declared, n_common),
+           "order_flips": np.bincount(merged.tri_trial[is_true & ~consistent], minlength=len(sc)),
+           **metrics.map_errors_batch(sc, merged)}
+    if first_pose is not None:
+        row["rot_err_first_pose_deg"] = np.degrees(np.abs(mm.wrap_angle(merged.theta - first_pose[0])))
+        row["trans_err_first_pose"] = np.sqrt(np.sum((merged.t - first_pose[1]) ** 2, axis=1))
+    return row
 
 
 def rule_log_tau(rule: str, match, lp_true, n_trials: int) -> np.ndarray:

@@ -16,15 +16,17 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import warnings
 from pathlib import Path
 
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from mapmerge.datasets import DEFAULT_CUT  # noqa: E402
+from mapmerge.datasets import DEFAULT_CUT, fit_error, map_quality, victoria_park  # noqa: E402
 
 from .aggregate import find_runs, save_table  # noqa: E402
 from .figures import STYLE, _save  # noqa: E402
@@ -32,10 +34,11 @@ from .paper import _call  # noqa: E402
 
 SWEEP = Path("outputs/sweeps/victoria_park")
 COLUMNS = {
-    "cut": "cut", "source": "source", "method": "method", "use_cov": "covariances", "n_p": "trees p", "n_q": "trees q",
-    "n_common_landmarks": "common", "correct_pairs": "correct", "wrong_pairs": "wrong",
-    "rot_err_deg": "rot err (deg)", "trans_err": "trans err (m)", "rmse": "RMSE (m)",
-    "ms": "time (ms)",
+    "cut": "cut", "source": "source", "method": "method", "use_cov": "covariances", "n_p": "trees p",
+    "n_q": "trees q", "n_common_landmarks": "common", "map_rmse_p": "map RMSE p (m)", "map_rmse_q": "map RMSE q (m)",
+    "correct_pairs": "correct", "wrong_pairs": "wrong", "rot_err_deg": "rot err (deg)",
+    "rot_err_first_pose_deg": "rot err vs first poses (deg)", "fused_rmse": "fused RMSE (m)",
+    "agents_rmse": "better agent, same trees (m)", "ms": "time (ms)",
 }
 
 
@@ -51,11 +54,43 @@ def load_runs(sweep: Path) -> tuple[pd.DataFrame, pd.DataFrame]:
     return pd.concat(trials, ignore_index=True), pd.concat(examples, ignore_index=True)
 
 
-def table(trials: pd.DataFrame) -> pd.DataFrame:
-    # Only consensus reads covariances: other methods' runs with them are repeats.
-    trials = trials[~trials.use_cov | (trials.method == "consensus")]
-    t = trials.assign(ms=1e3 * (trials.time_match_s + trials.time_merge_s))
-    t = t[list(COLUMNS)].sort_values(["source", "cut", "method", "use_cov"])
+def quality(cut: int, source: str) -> tuple[dict, object]:
+    """Each agent's map against the reference map (rigid fit by tree id), and the data."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the table reports the errors the warning is about
+        pair = victoria_park(cut=cut, source=source)
+    return map_quality(pair), pair
+
+
+def fused_vs_agents(merged: pd.DataFrame, pair) -> tuple[float, float]:
+    """RMSE (after a rigid fit onto the reference trees) of the fused rows, and the better of the
+    two agents' own maps over the same trees."""
+    fused = merged[merged.origin == "fused"]
+    if len(fused) < 3:
+        return float("nan"), float("nan")
+    ids = fused.id.to_numpy()
+    reference = pair.truth[ids]
+    own = []
+    for pts, agent_ids in ((pair.p, pair.ids_p), (pair.q, pair.ids_q)):
+        rows = np.searchsorted(agent_ids, ids)
+        own.append(fit_error(pts[rows], reference)["rmse"])
+    return fit_error(fused[["x", "y"]].to_numpy(), reference)["rmse"], min(own)
+
+
+def table(trials: pd.DataFrame, examples: pd.DataFrame) -> pd.DataFrame:
+    # Covariances change consensus's gates and every method's fusion; runs of the
+    # other methods with them differ only in the fused positions.
+    trials = trials[~trials.use_cov | (trials.method == "consensus")].copy()
+    trials["ms"] = 1e3 * (trials.time_match_s + trials.time_merge_s)
+    for (cut, source), rows in trials.groupby(["cut", "source"]):
+        q, pair = quality(int(cut), source)
+        trials.loc[rows.index, "map_rmse_p"] = q["p"]["rmse"]
+        trials.loc[rows.index, "map_rmse_q"] = q["q"]["rmse"]
+        for i, row in rows.iterrows():
+            ex = examples[(examples.cut == cut) & (examples.source == source) & (examples.method == row.method)
+                          & (examples.use_cov == row.use_cov) & (examples.kind == "merged")]
+            trials.loc[i, ["fused_rmse", "agents_rmse"]] = fused_vs_agents(ex, pair) if row.matched else np.nan
+    t = trials[list(COLUMNS)].sort_values(["source", "cut", "method", "use_cov"])
     return t.rename(columns=COLUMNS)
 
 
@@ -92,7 +127,7 @@ def figure(examples: pd.DataFrame, out: Path, cut: int = DEFAULT_CUT, method: st
 def write(sweep: Path, out: Path) -> list[Path]:
     trials, examples = load_runs(sweep)
     out.mkdir(parents=True, exist_ok=True)
-    return [*save_table(table(trials), out / "table"), *figure(examples, out)]
+    return [*save_table(table(trials, examples), out / "table"), *figure(examples, out)]
 
 
 def main(argv=None) -> None:

@@ -47,16 +47,26 @@ def check_sigma(sigma, name: str = "sigma") -> float:
     return value
 
 
-def check_variances(var, n: int, name: str):
-    """None, or a positive finite (n,) float array of per-landmark variances."""
-    if var is None:
+def check_covariances(cov, n: int, name: str):
+    """None, or per-landmark covariances as a (n, 2, 2) float array.
+
+    Accepts (n,) variances per coordinate (isotropic) or (n, 2, 2)
+    symmetric positive-definite matrices.
+    """
+    if cov is None:
         return None
     try:
-        arr = np.asarray(var, dtype=float)
+        arr = np.asarray(cov, dtype=float)
     except (TypeError, ValueError):
-        raise ValueError(f"{name} must be an array of {n} positive numbers") from None
-    if arr.shape != (n,):
-        raise ValueError(f"{name} must have shape ({n},), one variance per landmark, got {arr.shape}")
-    if not np.all(np.isfinite(arr)) or np.any(arr <= 0):
-        raise ValueError(f"{name} must hold positive finite variances")
+        raise ValueError(f"{name} must be (n,) variances or (n, 2, 2) covariances") from None
+    if arr.shape == (n,):
+        if not np.all(np.isfinite(arr)) or np.any(arr <= 0):
+            raise ValueError(f"{name} must hold positive finite variances")
+        return arr[:, None, None] * np.eye(2)
+    if arr.shape != (n, 2, 2):
+        raise ValueError(f"{name} must have shape ({n},) or ({n}, 2, 2), one per landmark, got {arr.shape}")
+    sym = np.abs(arr[:, 0, 1] - arr[:, 1, 0]) <= 1e-9 * np.abs(arr).max(axis=(1, 2))
+    det = arr[:, 0, 0] * arr[:, 1, 1] - arr[:, 0, 1] * arr[:, 1, 0]
+    if not (np.all(np.isfinite(arr)) and np.all(sym) and np.all(arr[:, 0, 0] > 0) and np.all(det > 0)):
+        raise ValueError(f"{name} must hold symmetric positive-definite 2x2 covariances")
     return arr

@@ -57,8 +57,10 @@ def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     try:
         map_p, map_q = read_map(args.map_a), read_map(args.map_b)
+        if (map_p.cov is None) != (map_q.cov is None):
+            raise ValueError("give covariances (sxx, sxy, syy or sigma) in both maps or in neither")
         res = merge_maps(map_p.points, map_q.points, args.sigma, tau=args.tau, method=args.method,
-                         var_p=map_p.variances, var_q=map_q.variances, rng=args.seed)
+                         cov_p=map_p.cov, cov_q=map_q.cov, rng=args.seed)
     except (MapFileError, ValueError, ImportError) as exc:
         print(f"mapmerge: error: {exc}", file=sys.stderr)
         return 2

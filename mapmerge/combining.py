@@ -51,9 +51,12 @@ class CombinedMap:
     index_q: np.ndarray
     sigma: float
     alignment: Alignment | None
+    row_cov: np.ndarray | None = None
 
     @functools.cached_property
     def cov(self) -> np.ndarray:
+        if self.row_cov is not None:  # from the landmarks' own covariances (information-weighted fusion)
+            return self.row_cov
         cov = np.broadcast_to(self.sigma**2 * np.eye(2), (len(self.points), 2, 2)).copy()
         if self.alignment is not None:
             fused, only_q = self.origin == "fused", self.origin == "q"
@@ -79,6 +82,8 @@ class CombinedBatch:
         ``FUSED``, ``ONLY_P`` or ``ONLY_Q`` (names in ``ORIGINS``).
     index_p, index_q : (R,) int ndarray
         Source landmark index, -1 where there is none.
+    cov : (R, 2, 2) ndarray or None
+        Row covariances when the landmarks' own covariances were given.
     """
 
     trial: np.ndarray
@@ -87,11 +92,23 @@ class CombinedBatch:
     origin: np.ndarray
     index_p: np.ndarray
     index_q: np.ndarray
+    cov: np.ndarray | None = None
 
 
 def combine_batch(P: np.ndarray, Q: np.ndarray, pair_trial: np.ndarray, pairs: np.ndarray,
-                  matched: np.ndarray, theta: np.ndarray, t: np.ndarray) -> CombinedBatch:
-    """Eq. (15) for B map pairs.
+                  matched: np.ndarray, theta: np.ndarray, t: np.ndarray, cov_p: np.ndarray | None = None,
+                  cov_q: np.ndarray | None = None) -> CombinedBatch:
+    """Eq. (15) for B map pairs, information-weighted when covariances are given.
+
+    With equal isotropic noise a fused landmark is the midpoint µ* of p_i and
+    q_j brought into p's frame. With per-landmark covariances (``cov_p``,
+    ``cov_q``) it is the information-weighted mean of the two,
+    ``(Σp⁻¹ + Σq'⁻¹)⁻¹ (Σp⁻¹ p + Σq'⁻¹ q')`` with ``q' = R(θ)ᵀ (q - t)`` and
+    ``Σq' = R(θ)ᵀ Σq R(θ)``, and its covariance is that information sum's
+    inverse; p-only rows keep Σp and q-only rows get Σq'. These row
+    covariances leave out the fitted transform's own uncertainty, which
+    matters where both maps know a landmark far better than the transform
+    is known (far from the matched landmarks' centroid).
 
     Parameters
     ----------
@@ -104,6 +121,8 @@ def combine_batch(P: np.ndarray, Q: np.ndarray, pair_trial: np.ndarray, pairs: n
         Map pairs with a fit; the others keep map p alone.
     theta, t : (B,), (B, 2) ndarray
         The fitted transforms (``q ≈ R(θ) p + t``).
+    cov_p, cov_q : (B, n_p, 2, 2), (B, n_q, 2, 2) ndarray, optional
+        The landmarks' own covariances, each in its map's frame.
 
     Returns
     -------
@@ -121,11 +140,21 @@ def combine_batch(P: np.ndarray, Q: np.ndarray, pair_trial: np.ndarray, pairs: n
     tq_, iq = np.nonzero(~paired_q)
     trial = np.concatenate([kt, tp_, tq_])
     section = np.concatenate([np.full(kt.size, FUSED), np.full(tp_.size, ONLY_P), np.full(tq_.size, ONLY_Q)])
-    points = np.concatenate([0.5 * (P[kt, pi] + mapped[kt, qi]), P[tp_, ip], mapped[tq_, iq]])
+    fused, row_cov = 0.5 * (P[kt, pi] + mapped[kt, qi]), None
+    if cov_p is not None:
+        c, s = np.cos(theta), np.sin(theta)
+        R = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)  # (B, 2, 2)
+        cov_q_in_p = np.einsum("bji,bnjk,bkl->bnil", R, cov_q, R)  # Rᵀ Σq R
+        info_p, info_q = np.linalg.inv(cov_p[kt, pi]), np.linalg.inv(cov_q_in_p[kt, qi])
+        fused_cov = np.linalg.inv(info_p + info_q)
+        fused = np.einsum("kij,kj->ki", fused_cov, np.einsum("kij,kj->ki", info_p, P[kt, pi])
+                          + np.einsum("kij,kj->ki", info_q, mapped[kt, qi]))
+        row_cov = np.concatenate([fused_cov, cov_p[tp_, ip], cov_q_in_p[tq_, iq]])
+    points = np.concatenate([fused, P[tp_, ip], mapped[tq_, iq]])
     index_p = np.concatenate([pi, ip, np.full(iq.size, -1)])
     index_q = np.concatenate([qi, np.full(ip.size, -1), iq])
     order = np.argsort(trial, kind="stable")  # sections already in row order within a trial
     count = np.bincount(trial, minlength=B)
     return CombinedBatch(trial=trial[order], offsets=np.r_[0, np.cumsum(count)], points=points[order],
                          origin=section[order].astype(np.int8), index_p=index_p[order].astype(np.intp),
-                         index_q=index_q[order].astype(np.intp))
+                         index_q=index_q[order].astype(np.intp), cov=None if row_cov is None else row_cov[order])

@@ -24,12 +24,13 @@ landmark id used for ground truth.
 from __future__ import annotations
 
 import functools
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from .alignment import rotation, wrap_angle
+from .alignment import align_pairs, rotate, rotation, wrap_angle
 
 #: Where the bundled copy of the data lives.
 DATA_DIR = Path(__file__).resolve().parent / "data" / "victoria_park"
@@ -93,6 +94,11 @@ class AgentPair:
     ``sigma`` the RMS per-coordinate standard deviation of the map entries
     (from the agents' own covariances, no ground truth), ``cov_p``/``cov_q``
     per-tree covariances, ``poses_p``/``poses_q`` the agents' pose counts.
+
+    Two truths: ``theta``/``t`` is the rigid fit between the two agents' maps
+    over their common tree ids, the transform any matcher should find;
+    ``theta_first_pose``/``t_first_pose`` relates the agents' first poses on
+    the reference trajectory. They differ by the agents' own map errors.
     """
 
     p: np.ndarray
@@ -109,6 +115,8 @@ class AgentPair:
     source: str
     poses_p: int
     poses_q: int
+    theta_first_pose: float
+    t_first_pose: np.ndarray
 
     @functools.cached_property
     def n_common(self) -> int:
@@ -258,13 +266,58 @@ def victoria_park(cut: int = DEFAULT_CUT, source: str = "reference", path=None) 
         ids_q, q, cov_q = agent_map(log, cut, len(log.pose_ids))
     if len(ids_p) < 3 or len(ids_q) < 3:
         raise ValueError(f"cut={cut} leaves an agent with fewer than 3 trees")
-    theta = float(wrap_angle(first_p[2] - first_q[2]))
-    t = (first_p[:2] - first_q[:2]) @ rotation(first_q[2])
+    theta_first = float(wrap_angle(first_p[2] - first_q[2]))
+    t_first = (first_p[:2] - first_q[:2]) @ rotation(first_q[2])
+    _, ip, iq = np.intersect1d(ids_p, ids_q, return_indices=True)
+    fit = align_pairs(p[ip], q[iq], 1.0) if ip.size >= 2 else None
     sigma = float(np.sqrt(np.mean(np.concatenate([np.trace(cov_p, axis1=1, axis2=2),
                                                    np.trace(cov_q, axis1=1, axis2=2)]) / 2)))
-    return AgentPair(
+    pair = AgentPair(
         p=p, q=q, ids_p=ids_p, ids_q=ids_q,
         truth=_to_frame(log.trees, first_p),
-        sigma=sigma, theta=theta, t=t, cov_p=cov_p, cov_q=cov_q,
-        cut=cut, source=source, poses_p=cut, poses_q=n_ref - cut,
+        sigma=sigma, theta=theta_first if fit is None else fit.theta, t=t_first if fit is None else fit.t,
+        cov_p=cov_p, cov_q=cov_q, cut=cut, source=source, poses_p=cut, poses_q=n_ref - cut,
+        theta_first_pose=theta_first, t_first_pose=t_first,
     )
+    for agent, quality in map_quality(pair).items():
+        expected = np.sqrt(2) * quality["rms_sd"]  # RMS distance its own covariances predict
+        if quality["rmse"] > QUALITY_WARNING * expected:
+            warnings.warn(f"Victoria Park cut {cut} ({source}): agent {agent}'s map is {quality['rmse']:.1f} m RMS "
+                          f"from the reference map after a rigid fit, {quality['rmse'] / expected:.1f} times what its "
+                          "own marginal covariances predict", stacklevel=2)
+    return pair
+
+
+#: ``victoria_park`` warns when an agent's map error (RMS distance from the
+#: reference map after a rigid fit) exceeds this many times the RMS distance
+#: its own marginal covariances predict.
+QUALITY_WARNING = 2.0
+
+
+def fit_error(points: np.ndarray, reference: np.ndarray) -> dict:
+    """Rigid fit (closed form) of ``points`` onto ``reference``, row k to row k.
+
+    Returns ``rmse`` and ``max`` of the residual distances and the fitted
+    rotation ``rot_deg``.
+    """
+    al = align_pairs(points, reference, 1.0)
+    dist = np.sqrt(np.sum((rotate(al.theta, points) + al.t - reference) ** 2, axis=1))
+    return {"rmse": float(np.sqrt(np.mean(dist**2))), "max": float(dist.max()), "rot_deg": float(np.degrees(al.theta))}
+
+
+def map_quality(pair: AgentPair) -> dict:
+    """How right each agent's own map is: rigid fit onto the reference tree map by tree id.
+
+    Returns
+    -------
+    dict
+        ``{"p": {...}, "q": {...}}``, each with ``rmse`` and ``max`` (metres,
+        after the fit), ``rot_deg`` (the fit's rotation), ``rms_sd`` (the
+        RMS per-coordinate marginal standard deviation the agent reports for
+        its trees) and ``trees``.
+    """
+    out = {}
+    for agent, pts, ids, cov in (("p", pair.p, pair.ids_p, pair.cov_p), ("q", pair.q, pair.ids_q, pair.cov_q)):
+        out[agent] = {**fit_error(pts, pair.truth[ids]), "trees": int(len(ids)),
+                      "rms_sd": float(np.sqrt(np.mean(np.trace(cov, axis1=1, axis2=2) / 2)))}
+    return out

@@ -23,7 +23,7 @@ from typing import Callable
 import numpy as np
 
 from . import consensus
-from ._validation import check_points, check_sigma, check_variances
+from ._validation import check_covariances, check_points, check_sigma
 from .baselines import astroalign as astroalign_baseline
 from .baselines import groth as groth_baseline
 from .matching import OBJECTIVES, TriangleMatch, match_triangles, resolve_correspondences, resolve_log_tau
@@ -100,12 +100,24 @@ def match_stage(P: np.ndarray, Q: np.ndarray, sigma: np.ndarray, method: str, ob
 
 
 def merge_at(P: np.ndarray, Q: np.ndarray, sigma: np.ndarray, match: TriangleMatch | None, log_tau: np.ndarray,
-             method: str, var_p=None, var_q=None, rng=None) -> MergeBatch:
-    """Declare at log τ (one per map pair), associate landmarks and combine (valid inputs)."""
+             method: str, cov_p=None, cov_q=None, rng=None) -> MergeBatch:
+    """Declare at log τ (one per map pair), associate landmarks and combine (valid inputs).
+
+    ``cov_p``/``cov_q`` (B, n, 2, 2): the landmarks' own covariances, used by
+    consensus's gates (their per-coordinate variance) and by the fusion of
+    every method's combined map (information weighting).
+    """
+    batch = _merge_at(P, Q, sigma, match, log_tau, method, cov_p, cov_q, rng)
+    return batch if cov_p is None else batch.with_covariances(cov_p, cov_q)
+
+
+def _merge_at(P, Q, sigma, match, log_tau, method, cov_p, cov_q, rng) -> MergeBatch:
     m = get_method(method)
     if m.baseline is not None:
         return m.baseline(P, Q, sigma, triangulate_batch(P), triangulate_batch(Q), rng)
     if m.name == "consensus":
+        var_p = None if cov_p is None else np.trace(cov_p, axis1=2, axis2=3) / 2
+        var_q = None if cov_q is None else np.trace(cov_q, axis1=2, axis2=3) / 2
         return consensus.consensus_merge(P, Q, sigma, match, log_tau, var_p, var_q)
     declared = match.log_lr >= log_tau[match.trial]
     # Landmark indices offset by pair so that one call resolves every pair's conflicts.
@@ -122,7 +134,7 @@ def merge_at(P: np.ndarray, Q: np.ndarray, sigma: np.ndarray, match: TriangleMat
     )
 
 
-def merge_batch(P, Q, sigma, tau=DEFAULT_TAU, method="consensus", objective="lr", var_p=None, var_q=None,
+def merge_batch(P, Q, sigma, tau=DEFAULT_TAU, method="consensus", objective="lr", cov_p=None, cov_q=None,
                 rng=None) -> MergeBatch:
     """``merge_maps`` on B map pairs of equal sizes at once.
 
@@ -134,7 +146,7 @@ def merge_batch(P, Q, sigma, tau=DEFAULT_TAU, method="consensus", objective="lr"
     sigma : float or (B,) array_like
     tau, method, objective, rng
         As for ``merge_maps`` (one threshold for every pair).
-    var_p, var_q : (B, n) array_like, optional
+    cov_p, cov_q : (B, n, 2, 2) array_like, optional
 
     Returns
     -------
@@ -151,10 +163,15 @@ def merge_batch(P, Q, sigma, tau=DEFAULT_TAU, method="consensus", objective="lr"
     if objective not in OBJECTIVES:
         raise ValueError(f"objective must be one of {OBJECTIVES}, got {objective!r}")
     match = match_stage(P, Q, sigma, method, objective, log_tau)
-    return merge_at(P, Q, sigma, match, np.full(len(P), log_tau), method, var_p, var_q, rng)
+    if (cov_p is None) != (cov_q is None):
+        raise ValueError("cov_p and cov_q must be given together")
+    if cov_p is not None:
+        cov_p, cov_q = (np.stack([check_covariances(c, x.shape[1], name) for c in np.asarray(cv, dtype=float)])
+                        for cv, x, name in ((cov_p, P, "cov_p"), (cov_q, Q, "cov_q")))
+    return merge_at(P, Q, sigma, match, np.full(len(P), log_tau), method, cov_p, cov_q, rng)
 
 
-def merge_maps(P, Q, sigma, tau=DEFAULT_TAU, method="consensus", objective="lr", var_p=None, var_q=None,
+def merge_maps(P, Q, sigma, tau=DEFAULT_TAU, method="consensus", objective="lr", cov_p=None, cov_q=None,
                rng=None) -> MergeResult:
     """Match two landmark maps and build their maximum-likelihood combination.
 
@@ -179,10 +196,13 @@ def merge_maps(P, Q, sigma, tau=DEFAULT_TAU, method="consensus", objective="lr",
         explain. ``"paper"`` is the seed paper's method as published.
     objective : {"lr", "loglr"}
         LP objective: Σ Λ as in the paper, or Σ log Λ.
-    var_p, var_q : (n,) array_like, optional
-        Per-landmark variances (per coordinate) for ``method="consensus"``:
-        its landmark association gates and significance test use them
-        instead of σ².
+    cov_p, cov_q : (n, 2, 2) or (n,) array_like, optional
+        Each landmark's own covariance in its map's frame, or its variance
+        per coordinate (given together). ``consensus``'s association gates
+        and acceptance test use them instead of σ², and every method fuses
+        matched landmarks by information weighting (the row covariance is
+        the information sum's inverse, q's covariances rotated into p's
+        frame). The transform is still the closed-form fit.
     rng : None, int, SeedSequence or Generator
         Randomness of randomised baselines (astroalign's RANSAC); default:
         a generator seeded by the two maps, so the same maps give the same
@@ -201,7 +221,9 @@ def merge_maps(P, Q, sigma, tau=DEFAULT_TAU, method="consensus", objective="lr",
     P = check_points(P, "P")
     Q = check_points(Q, "Q")
     sigma = check_sigma(sigma)
-    var_p, var_q = check_variances(var_p, len(P), "var_p"), check_variances(var_q, len(Q), "var_q")
+    cov_p, cov_q = check_covariances(cov_p, len(P), "cov_p"), check_covariances(cov_q, len(Q), "cov_q")
+    if (cov_p is None) != (cov_q is None):
+        raise ValueError("cov_p and cov_q must be given together")
     log_tau = resolve_log_tau(tau)
     get_method(method)
     if objective not in OBJECTIVES:
@@ -209,7 +231,7 @@ def merge_maps(P, Q, sigma, tau=DEFAULT_TAU, method="consensus", objective="lr",
     Pb, Qb, sig = P[None], Q[None], np.array([sigma])
     match = match_stage(Pb, Qb, sig, method, objective, log_tau)
     batch = merge_at(Pb, Qb, sig, match, np.array([log_tau]), method,
-                     None if var_p is None else var_p[None], None if var_q is None else var_q[None], rng)
+                     None if cov_p is None else cov_p[None], None if cov_q is None else cov_q[None], rng)
     return batch.result(0)
 
 

@@ -10,6 +10,7 @@ pair b's ``MergeResult``.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -116,6 +117,11 @@ class MergeBatch:
     def __len__(self) -> int:
         return len(self.P)
 
+    def with_covariances(self, cov_p: np.ndarray, cov_q: np.ndarray) -> "MergeBatch":
+        """The same merges with the combined maps fused by information weighting (``combine_batch``)."""
+        return dataclasses.replace(self, combined=combine_batch(self.P, self.Q, self.pair_trial, self.pairs,
+                                                                self.matched, self.theta, self.t, cov_p, cov_q))
+
     def result(self, b: int) -> MergeResult:
         """Map pair b's ``MergeResult``."""
         sigma = float(self.sigma[b])
@@ -135,7 +141,8 @@ class MergeBatch:
             triangle_log_lr=self.triangle_log_lr[tri], declared=self.declared[tri],
             log_tau=float(self.log_tau[b]), tri_p=self.tri_p[b], tri_q=self.tri_q[b], alignment=alignment,
             combined=CombinedMap(points=points, origin=ORIGINS[origin], index_p=self.combined.index_p[rows],
-                                 index_q=self.combined.index_q[rows], sigma=sigma, alignment=alignment),
+                                 index_q=self.combined.index_q[rows], sigma=sigma, alignment=alignment,
+                                 row_cov=None if self.combined.cov is None else self.combined.cov[rows]),
             method=self.method,
         )
 

@@ -7,7 +7,7 @@ import pytest
 
 import mapmerge as mm
 from mapmerge import metrics
-from mapmerge.datasets import DATA_DIR, DatasetError, load_log, victoria_park
+from mapmerge.datasets import DATA_DIR, DatasetError, fit_error, load_log, map_quality, victoria_park
 
 
 def test_log_counts():
@@ -43,14 +43,67 @@ def test_merge_recovers_true_transform(method):
     assert err["correct_pairs"] >= 40
 
 
-def test_slam_source_reports_marginal_covariances():
+def _world_to_first_pose(log, start, ids):
+    pose = log.trajectory[start]
+    return (log.trees[ids] - pose[:2]) @ mm.rotation(pose[2])
+
+
+@pytest.mark.parametrize("start, stop, bound", [(0, 1500, 1.0), (6200, None, 12.0)])
+def test_slam_agent_maps_are_right_to_their_bound(tmp_path, monkeypatch, start, stop, bound):
+    """Each agent solves its own map incrementally: checked against the reference map by tree id."""
     pytest.importorskip("gtsam")
-    vp = victoria_park(cut=3483, source="slam")
-    assert (len(vp.p), len(vp.q), vp.n_common) == (82, 135, 66)
-    assert vp.cov_p.shape == (82, 2, 2) and np.all(np.linalg.eigvalsh(vp.cov_p) > 0)
-    # Anchored at its first pose, an agent is surest of the trees it saw first.
-    first_tree = vp.ids_p == load_log().obs_tree[0]
-    assert np.trace(vp.cov_p[first_tree][0]) < np.median(np.trace(vp.cov_p, axis1=1, axis2=2))
+    from mapmerge._slam import agent_map
+
+    monkeypatch.setenv("MAPMERGE_CACHE", str(tmp_path))
+    log = load_log()
+    ids, points, cov = agent_map(log, start, stop or len(log.pose_ids))
+    quality = fit_error(points, _world_to_first_pose(log, start, ids))
+    assert quality["rmse"] <= bound
+    assert cov.shape == (len(ids), 2, 2) and np.all(np.linalg.eigvalsh(cov) > 0)
+    # Anchored at its first pose, the agent is surest of the first tree it saw.
+    first = np.flatnonzero(ids == log.obs_tree[np.flatnonzero(log.obs_pose >= start)[0]])
+    assert np.trace(cov[first][0]) < np.median(np.trace(cov, axis1=1, axis2=2))
+
+
+def test_slam_cache_hits_and_is_invalidated_by_the_settings(tmp_path, monkeypatch):
+    pytest.importorskip("gtsam")
+    import mapmerge._slam as slam
+
+    monkeypatch.setenv("MAPMERGE_CACHE", str(tmp_path))
+    log = load_log()
+    first = slam.agent_map(log, 6200, len(log.pose_ids))
+    assert len(list(tmp_path.glob("*.npz"))) == 1
+
+    def no_solve(*args):
+        raise AssertionError("solved again")
+
+    monkeypatch.setattr(slam, "_solve", no_solve)
+    again = slam.agent_map(log, 6200, len(log.pose_ids))  # a hit: not solved again
+    for a, b in zip(first, again):
+        np.testing.assert_array_equal(a, b)
+    monkeypatch.setitem(slam.SETTINGS, "relinearize_skip", 1)
+    with pytest.raises(AssertionError, match="solved again"):
+        slam.agent_map(log, 6200, len(log.pose_ids))
+
+
+def test_slam_maps_of_cut_1500_merge_with_consensus():
+    """Both agents' own maps are right to a metre: consensus (with their covariances) merges them."""
+    pytest.importorskip("gtsam")
+    vp = victoria_park(cut=1500, source="slam")
+    quality = map_quality(vp)
+    assert quality["p"]["rmse"] < 1.0 and quality["q"]["rmse"] < 1.0
+    res = mm.merge_maps(vp.p, vp.q, vp.sigma, method="consensus", cov_p=vp.cov_p, cov_q=vp.cov_q)
+    err = metrics.map_errors(vp, res)  # vp.theta: the rigid fit between the two maps over common trees
+    assert res.matched and err["rot_err_deg"] < 1.0
+    assert err["correct_pairs"] >= 0.8 * vp.n_common and err["wrong_pairs"] <= 0.05 * err["n_pairs"]
+
+
+def test_loader_warns_when_a_map_is_far_beyond_its_own_covariances(monkeypatch):
+    import mapmerge.datasets as datasets
+
+    monkeypatch.setattr(datasets, "QUALITY_WARNING", 0.01)  # every real map exceeds 1 % of its prediction
+    with pytest.warns(UserWarning, match="agent p's map is"):
+        victoria_park(cut=3483, source="reference")
 
 
 def test_bad_arguments_and_files(tmp_path):
