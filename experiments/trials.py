@@ -133,8 +133,8 @@ def _run_slice(root_seed: int, scenario: dict, matcher: dict, ks: np.ndarray):
     covariances, first_pose = {}, None
     if dataset is not None:
         first_pose = (dataset.theta_first_pose, dataset.t_first_pose[None])
-    if matcher.get("use_cov") and dataset is not None:
-        covariances = {"cov_p": dataset.cov_p[None], "cov_q": dataset.cov_q[None]}
+        if matcher.get("use_cov"):
+            covariances = {"cov_p": dataset.cov_p[None], "cov_q": dataset.cov_q[None]}
 
     clock = time.perf_counter()
     match = match_stage(sc.p, sc.q, sc.sigma, method.name, matcher.get("objective", "lr"), _loosest_tau(taus))
@@ -146,7 +146,7 @@ def _run_slice(root_seed: int, scenario: dict, matcher: dict, ks: np.ndarray):
     columns, last = [], None
     for rule in taus:
         clock = time.perf_counter()
-        log_tau = rule_log_tau(rule, match, lp_true if match is not None else None, B)
+        log_tau = rule_log_tau(rule, match, lp_true, B)
         declared = None if match is None else match.log_lr >= log_tau[match.trial]
         if last is None:
             row = _evaluate(sc, match, log_tau, method.name, covariances, n_common, lp_true, lp_consistent, first_pose)

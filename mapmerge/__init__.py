@@ -2,8 +2,9 @@
 
 Implements the closed-form GLRT between Delaunay triangles in Groth order,
 bipartite matching by the assignment LP and the closed-form maximum-likelihood
-combined map of Jones, Campbell and Tong, "Maximum likelihood fusion of
-stochastic maps" (arXiv:1303.6170), methods that go beyond it, and the
+combined map of B. Jones, M. Campbell and L. Tong ("Maximum likelihood
+combining of stochastic maps"; journal version "Maximum likelihood fusion
+of stochastic maps", arXiv:1303.6170), methods that go beyond it, and the
 ground truth and metrics to measure them.
 
 One module per stage: ``triangles``, ``statistic`` (GLRT), ``alignment``,
