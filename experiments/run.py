@@ -35,16 +35,12 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import hydra
-import joblib
-import pandas as pd
-import pyarrow as pa
-import pyarrow.parquet as pq
 from omegaconf import DictConfig, OmegaConf
-from tqdm.auto import tqdm
 
 from .schema import ConfigError, register_configs, validate
-from .trials import TIME_COLUMNS, cell_key, code_digest, run_chunk
-from .examples import example_tables
+
+# The Monte Carlo machinery (numpy, scipy, pandas, pyarrow, joblib) is imported
+# where it is used, so that the command line refuses a bad override quickly.
 
 log = logging.getLogger(__name__)
 
@@ -72,12 +68,16 @@ OmegaConf.register_new_resolver("dirname", dirname, replace=True)
 register_configs()
 
 
-def write_parquet_atomic(df: pd.DataFrame, path: Path) -> None:
-    """Write a Parquet file so that it either exists complete or not at all."""
+def write_parquet_atomic(df, path: Path) -> None:
+    """Write a DataFrame as a Parquet file that either exists complete or not at all."""
+    import pyarrow as pa
+
     _write_table_atomic(pa.Table.from_pandas(df, preserve_index=False), path)
 
 
-def _write_table_atomic(table: pa.Table, path: Path) -> None:
+def _write_table_atomic(table, path: Path) -> None:
+    import pyarrow.parquet as pq
+
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     pq.write_table(table, tmp)
     os.replace(tmp, path)
@@ -86,6 +86,8 @@ def _write_table_atomic(table: pa.Table, path: Path) -> None:
 def _run_key(cfg: DictConfig) -> str:
     """Hash of everything that determines the trials' content, the code included
     (a chunk left by an older version of the library is never reused)."""
+    from .trials import code_digest
+
     key = {
         "scenario": OmegaConf.to_container(cfg.scenario),
         "matcher": OmegaConf.to_container(cfg.matcher),
@@ -98,6 +100,8 @@ def _run_key(cfg: DictConfig) -> str:
 @contextmanager
 def _backend(mc):
     """joblib backend: local loky processes, or a dask.distributed cluster."""
+    import joblib
+
     if mc.backend == "loky":
         with joblib.parallel_config(backend="loky", n_jobs=mc.n_jobs):
             yield
@@ -135,6 +139,12 @@ def run(cfg: DictConfig, output_dir: str | Path) -> Path:
         The ``trials.parquet`` written.
     """
     validate(cfg)
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from .examples import example_tables
+    from .trials import cell_key
+
     out = Path(output_dir)
     chunk_dir = out / "chunks"
     chunk_dir.mkdir(parents=True, exist_ok=True)
@@ -187,6 +197,9 @@ def run(cfg: DictConfig, output_dir: str | Path) -> Path:
 
 def _run_chunks(cfg, scenario: dict, matcher: dict, todo, stem) -> None:
     """Run the missing chunks on the configured backend, each saved as it finishes."""
+    import joblib
+    from tqdm.auto import tqdm
+
     seed = cfg.mc.seed
     # Local workers write their own chunks (no DataFrames shipped back);
     # dask workers may sit on other machines, so the driver writes theirs.
@@ -207,6 +220,8 @@ def _run_chunks(cfg, scenario: dict, matcher: dict, todo, stem) -> None:
 
 def _chunk_job(seed, scenario, matcher, a, b, base: Path | None):
     """Run one chunk; write it when ``base`` is given, else return its frames."""
+    from .trials import run_chunk
+
     frames = run_chunk(seed, scenario, matcher, a, b)
     if base is None:
         return a, b, frames
@@ -214,7 +229,9 @@ def _chunk_job(seed, scenario, matcher, a, b, base: Path | None):
     return a, b, None
 
 
-def _write_chunk(base: Path, trials: pd.DataFrame, pairs: pd.DataFrame) -> None:
+def _write_chunk(base: Path, trials, pairs) -> None:
+    from .trials import TIME_COLUMNS
+
     write_parquet_atomic(pairs, Path(f"{base}.pairs.parquet"))
     write_parquet_atomic(trials[["trial", "tau", *TIME_COLUMNS]], Path(f"{base}.timings.parquet"))
     # The trials file last: its presence marks the chunk done.
@@ -228,10 +245,12 @@ def main(cfg: DictConfig) -> None:
 
     path = run(cfg, HydraConfig.get().runtime.output_dir)
     if HydraConfig.get().mode == RunMode.RUN:  # a sweep's numbers come from its aggregate
+        import pandas as pd
+
         print(headline(pd.read_parquet(path)))
 
 
-def headline(trials: pd.DataFrame) -> str:
+def headline(trials) -> str:
     """One run's numbers per τ rule: detections, P_D / P_FA, merges."""
     from .aggregate import markdown, summary_table
 

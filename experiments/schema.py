@@ -18,10 +18,6 @@ from typing import Optional
 
 from hydra.core.config_store import ConfigStore
 
-from mapmerge.datasets import SOURCES
-from mapmerge.matching import OBJECTIVES, resolve_log_tau
-from mapmerge.merging import METHODS
-
 BACKENDS = ("loky", "dask")
 KINDS = ("synthetic", "victoria_park")
 
@@ -110,6 +106,12 @@ def validate(cfg) -> None:
     raise ConfigError on the first bad key."""
     for key, near in unknown_keys(cfg):
         raise ConfigError(f"{key} is not a config key" + (f"; did you mean {near}?" if near else ""))
+    # The library is imported only for the range checks, so that a mistyped key
+    # or value is refused before numpy and scipy load.
+    from mapmerge.datasets import SOURCES
+    from mapmerge.matching import OBJECTIVES, resolve_log_tau
+    from mapmerge.merging import METHODS
+
     s, m, mc = cfg.scenario, cfg.matcher, cfg.mc
     if s.kind not in KINDS:
         _fail("scenario.kind", s.kind, f"must be one of {list(KINDS)}")

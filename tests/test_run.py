@@ -38,7 +38,7 @@ def test_resume_after_deleting_chunks_is_identical(tmp_path):
 def test_chunks_of_other_code_are_not_reused(tmp_path, monkeypatch):
     out = run(small(), tmp_path).parent
     before = set((out / "chunks").glob("*.trials.parquet"))
-    monkeypatch.setattr("experiments.run.code_digest", lambda: "another version of the library")
+    monkeypatch.setattr("experiments.trials.code_digest", lambda: "another version of the library")
     run(small(), tmp_path)
     after = set((out / "chunks").glob("*.trials.parquet"))
     assert len(after - before) == len(before)  # every chunk recomputed under a new key
