@@ -47,7 +47,7 @@ class MatcherConfig:
     objective: str = "lr"
     # τ rules compared on the same trials: "oracle", "chi2:P" or a log-LR.
     taus: list[str] = field(default_factory=lambda: ["oracle", "chi2:0.01", "chi2:0.001"])
-    # consensus: use per-landmark covariances where the maps have them (real data).
+    # Real data: pass the maps' per-landmark covariances (consensus gates, fusion of every method).
     use_cov: bool = False
 
 
