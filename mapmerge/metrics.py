@@ -260,3 +260,82 @@ def errors_batch(ids_p, ids_q, truth, true_theta, true_t, sigma, n_common, pair_
         "success": matched & (rot_err_deg < SUCCESS_DEG) & (rmse < SUCCESS_RMSE_SIGMAS * sigma),
         "false_merge": matched & (n_common == 0),
     }
+
+
+def oracle_association(P, Q, theta, t, cov_p, cov_q, density_q: float, p_shared: float):
+    """The best landmark association any matcher could make: an oracle that knows the true transform.
+
+    Given the TRUE (θ, t), each candidate pair (i, j) scores its posterior
+    log-odds against "unshared":
+
+        s_ij = log N(e_ij; 0, C_ij) - log λ_q + log(π / (1 - π)),
+
+    ``e_ij = p_i - R(θ)ᵀ (q_j - t)``, ``C_ij = Σp_i + R(θ)ᵀ Σq_j R(θ)`` (both
+    maps' noise, q's brought into p's frame), λ_q the landmark density of q
+    (an unshared q landmark is anywhere) and π the prior that a landmark is
+    shared. Leaving a landmark unshared scores 0. The association maximises
+    the total score over one-to-one pairings (an assignment on each
+    connected component of the positively scored pairs). Labelled an oracle:
+    it uses ground truth.
+
+    Parameters
+    ----------
+    P, Q : (n_p, 2), (n_q, 2) ndarray
+    theta, t : float, (2,) ndarray
+        The true transform, ``q ≈ R(θ) p + t``.
+    cov_p, cov_q : (n_p, 2, 2), (n_q, 2, 2) ndarray
+    density_q : float
+        Landmarks of q per unit area, > 0.
+    p_shared : float
+        Prior probability that a landmark is shared, in (0, 1).
+
+    Returns
+    -------
+    (K, 2) int ndarray
+        Pairs (p index, q index), sorted by p index.
+    """
+    from scipy.optimize import linear_sum_assignment
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    from .alignment import rotate
+
+    if not density_q > 0 or not 0 < p_shared < 1:
+        raise ValueError("density_q must be > 0 and p_shared in (0, 1)")
+    c, s = np.cos(theta), np.sin(theta)
+    R = np.array([[c, -s], [s, c]])
+    x = rotate(-theta, np.asarray(Q, float) - t)
+    cq = np.einsum("ji,njk,kl->nil", R, cov_q, R)
+    prior = -np.log(density_q) + np.log(p_shared / (1 - p_shared))
+    # A pair can score > 0 only if d² < 2 (prior - log(2π √det C)): bound the search radius.
+    det_min = np.linalg.det(cov_p).min() + np.linalg.det(cq).min()
+    largest = np.linalg.eigvalsh(cov_p)[:, 1].max() + np.linalg.eigvalsh(cq)[:, 1].max()
+    d2_max = 2 * (prior - np.log(2 * np.pi * np.sqrt(det_min)))
+    if d2_max <= 0:
+        return np.empty((0, 2), dtype=np.intp)
+    cand = cKDTree(P).sparse_distance_matrix(cKDTree(x), np.sqrt(d2_max * largest), output_type="coo_matrix")
+    i, j = cand.row, cand.col
+    C = cov_p[i] + cq[j]
+    e = P[i] - x[j]
+    d2 = np.einsum("ki,kij,kj->k", e, np.linalg.inv(C), e)
+    score = -0.5 * d2 - np.log(2 * np.pi * np.sqrt(np.linalg.det(C))) + prior
+    keep = score > 0
+    i, j, score = i[keep], j[keep], score[keep]
+    if i.size == 0:
+        return np.empty((0, 2), dtype=np.intp)
+    n_p = len(P)
+    graph = coo_matrix((np.ones(i.size), (i, n_p + j)), shape=(n_p + len(Q),) * 2)
+    _, label = connected_components(graph, directed=False)
+    pairs = []
+    for comp in np.unique(label[i]):
+        sel = label[i] == comp
+        rows, ri = np.unique(i[sel], return_inverse=True)
+        cols, ci = np.unique(j[sel], return_inverse=True)
+        gain = np.zeros((rows.size, cols.size))  # 0: unshared
+        gain[ri, ci] = score[sel]
+        r, k = linear_sum_assignment(gain, maximize=True)
+        chosen = gain[r, k] > 0
+        pairs.append(np.stack([rows[r[chosen]], cols[k[chosen]]], axis=1))
+    pairs = np.concatenate(pairs).astype(np.intp)
+    return pairs[np.argsort(pairs[:, 0], kind="stable")]

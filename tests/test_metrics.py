@@ -50,3 +50,44 @@ def test_labels_and_common_triangles():
     assert np.all(is_true[consistent])
     # At 60 dB every common triangle is found with its true partner.
     assert is_true.sum() == len(common) and consistent.sum() == len(common)
+
+
+def _brute_force_association(score):
+    """Best one-to-one partial pairing by enumeration (pairs with score <= 0 never help)."""
+    from itertools import permutations
+
+    n_p, n_q = score.shape
+    best, best_pairs = 0.0, []
+    cols = list(range(n_q)) + [None] * n_p
+    for perm in set(permutations(cols, n_p)):
+        total = sum(score[i, j] for i, j in enumerate(perm) if j is not None and score[i, j] > 0)
+        if total > best + 1e-12:
+            best = total
+            best_pairs = sorted((i, j) for i, j in enumerate(perm) if j is not None and score[i, j] > 0)
+    return best, best_pairs
+
+
+def test_oracle_association_is_the_best_pairing_by_enumeration(rng):
+    for _ in range(40):
+        n_p, n_q = int(rng.integers(2, 5)), int(rng.integers(2, 5))
+        P = rng.uniform(0, 1.5, (n_p, 2))
+        Q = rng.uniform(0, 1.5, (n_q, 2))
+        cov_p = np.einsum("n,ij->nij", rng.uniform(0.01, 0.1, n_p), np.eye(2))
+        cov_q = np.einsum("n,ij->nij", rng.uniform(0.01, 0.1, n_q), np.eye(2))
+        theta, t = 0.0, np.zeros(2)
+        pairs = metrics.oracle_association(P, Q, theta, t, cov_p, cov_q, density_q=1.0, p_shared=0.5)
+        C = cov_p[:, None] + cov_q[None]
+        e = P[:, None] - Q[None]
+        d2 = np.einsum("abi,abij,abj->ab", e, np.linalg.inv(C), e)
+        score = -0.5 * d2 - np.log(2 * np.pi * np.sqrt(np.linalg.det(C)))  # log λ = 0, log odds = 0
+        _, expected = _brute_force_association(score)
+        assert [tuple(p) for p in pairs.tolist()] == expected
+
+
+def test_oracle_association_on_a_synthetic_pair():
+    sc = mm.simulate.make_pair(100, 0.75, 40, rng=3)
+    cov = sc.sigma**2 * np.eye(2)
+    pairs = metrics.oracle_association(sc.p, sc.q, sc.theta, sc.t, np.broadcast_to(cov, (100, 2, 2)),
+                                       np.broadcast_to(cov, (100, 2, 2)), density_q=1.0, p_shared=0.75)
+    correct = np.sum(sc.ids_p[pairs[:, 0]] == sc.ids_q[pairs[:, 1]])
+    assert correct == sc.n_common and len(pairs) == correct
