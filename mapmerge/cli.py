@@ -32,8 +32,9 @@ def _parser() -> argparse.ArgumentParser:
     merge.add_argument("map_b", help="map q (CSV/TSV)")
     merge.add_argument("--sigma", type=float, required=True,
                        help="per-coordinate standard deviation of a landmark, in map units")
-    merge.add_argument("--method", default="consensus", choices=list(METHODS),
-                       help="matcher (default consensus; paper = the seed paper as published)")
+    merge.add_argument("--method", default="consensus", choices=list(METHODS), metavar="METHOD",
+                       help="matcher, default consensus: " + "; ".join(f"{m.name}: {m.summary}"
+                                                                   for m in METHODS.values()))
     merge.add_argument("--tau", default=DEFAULT_TAU, help=f"threshold: chi2:P or a log-LR (default {DEFAULT_TAU})")
     merge.add_argument("-o", "--output", required=True, help="combined map file to write (.csv or .tsv)")
     merge.add_argument("--plot", help="also draw both maps in A's frame to this image (PNG/PDF)")
