@@ -52,6 +52,17 @@ def rotate(theta, x: np.ndarray) -> np.ndarray:
     return np.stack([c * x[..., 0] - s * x[..., 1], s * x[..., 0] + c * x[..., 1]], axis=-1)
 
 
+def covariance_in_p_frame(theta, cov: np.ndarray) -> np.ndarray:
+    """Covariances of q landmarks brought into p's frame, ``R(θ)ᵀ Σ R(θ)``.
+
+    ``cov`` (..., n, 2, 2); θ a scalar or one per leading batch index.
+    """
+    theta = np.asarray(theta, dtype=float)
+    c, s = np.cos(theta), np.sin(theta)
+    R = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)[..., None, :, :]
+    return np.swapaxes(R, -1, -2) @ cov @ R
+
+
 def fit_transforms(trial: np.ndarray, P: np.ndarray, Q: np.ndarray, n_trials: int):
     """θ*, t* and J* of ragged sets of paired points, one set per trial.
 

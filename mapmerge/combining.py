@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .alignment import Alignment, mapped_covariance, rotate
+from .alignment import Alignment, covariance_in_p_frame, mapped_covariance, rotate
 
 #: Row origins, in the order they appear in a combined map.
 ORIGINS = np.array(["fused", "p", "q"], dtype=object)
@@ -142,9 +142,7 @@ def combine_batch(P: np.ndarray, Q: np.ndarray, pair_trial: np.ndarray, pairs: n
     section = np.concatenate([np.full(kt.size, FUSED), np.full(tp_.size, ONLY_P), np.full(tq_.size, ONLY_Q)])
     fused, row_cov = 0.5 * (P[kt, pi] + mapped[kt, qi]), None
     if cov_p is not None:
-        c, s = np.cos(theta), np.sin(theta)
-        R = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)  # (B, 2, 2)
-        cov_q_in_p = np.einsum("bji,bnjk,bkl->bnil", R, cov_q, R)  # Rᵀ Σq R
+        cov_q_in_p = covariance_in_p_frame(theta, cov_q)
         info_p, info_q = np.linalg.inv(cov_p[kt, pi]), np.linalg.inv(cov_q_in_p[kt, qi])
         fused_cov = np.linalg.inv(info_p + info_q)
         fused = np.einsum("kij,kj->ki", fused_cov, np.einsum("kij,kj->ki", info_p, P[kt, pi])

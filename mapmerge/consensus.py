@@ -31,8 +31,6 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import ConvexHull, cKDTree
 from scipy.special import chdtri, gammaln
 
@@ -40,7 +38,7 @@ from .alignment import (
     align_pairs, mapped_covariance, paired_transforms, prediction_var, reject_outliers, rotation,
     wrap_angle,
 )
-from .matching import TriangleMatch, correspondences
+from .matching import TriangleMatch, candidate_components, component_blocks, correspondences
 from .result import MergeBatch, build_from_parts
 
 #: Tail probability of every χ² gate (a true pair / landmark is rejected
@@ -228,18 +226,12 @@ def associate(P, Q, alignment, sigma, var_p=None, var_q=None):
     if i.size == 0:
         return np.empty((0, 2), dtype=np.intp), np.empty(0, dtype=bool)
     n_p = P.shape[0]
-    graph = coo_matrix((np.ones(i.size), (i, n_p + j)), shape=(n_p + len(Q),) * 2)
-    _, label = connected_components(graph, directed=False)
-    comp = label[i]
+    comp = candidate_components(i, j, n_p, len(Q))
     single = np.bincount(comp)[comp] == 1  # the common case: one candidate, no contest
     pairs = [np.stack([i[single], j[single]], axis=1)]
     contested = [np.zeros(int(single.sum()), dtype=bool)]
-    for k in np.unique(comp[~single]):
-        sel = comp == k
-        rows, ri = np.unique(i[sel], return_inverse=True)
-        cols, ci = np.unique(j[sel], return_inverse=True)
-        cost = np.full((rows.size, cols.size), gate)  # leaving a landmark unpaired costs the gate
-        cost[ri, ci] = d2[sel]
+    # Leaving a landmark unpaired costs the gate.
+    for rows, cols, cost in component_blocks(i[~single], j[~single], d2[~single], comp[~single], gate):
         r, c = linear_sum_assignment(cost)
         keep = cost[r, c] < gate
         best = cost[r, c].sum()

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import min_weight_full_bipartite_matching
+from scipy.sparse.csgraph import connected_components, min_weight_full_bipartite_matching
 from scipy.spatial import cKDTree
 from scipy.special import chdtri
 
@@ -182,6 +182,32 @@ def assign_sparse(log_lr: np.ndarray, pairs: np.ndarray, shape, objective: str =
     r, c = min_weight_full_bipartite_matching(graph, maximize=True)
     real = c < n_q
     return np.stack([r[real], c[real]], axis=1).astype(np.intp)
+
+
+def candidate_components(i: np.ndarray, j: np.ndarray, n_p: int, n_q: int) -> np.ndarray:
+    """Connected component of each candidate pair (i, j) in the bipartite graph of all candidates.
+
+    An assignment over the candidates decomposes into one small assignment
+    per component (``component_blocks``).
+    """
+    graph = coo_matrix((np.ones(i.size), (i, n_p + j)), shape=(n_p + n_q,) * 2)
+    _, label = connected_components(graph, directed=False)
+    return label[i]
+
+
+def component_blocks(i: np.ndarray, j: np.ndarray, values: np.ndarray, component: np.ndarray, fill: float):
+    """Each component's candidates as a dense block: yields ``(rows, cols, block)``.
+
+    ``block[r, c]`` is the value of the candidate (rows[r], cols[c]) and
+    ``fill`` where the pair is not a candidate.
+    """
+    for k in np.unique(component):
+        sel = component == k
+        rows, ri = np.unique(i[sel], return_inverse=True)
+        cols, ci = np.unique(j[sel], return_inverse=True)
+        block = np.full((rows.size, cols.size), fill)
+        block[ri, ci] = values[sel]
+        yield rows, cols, block
 
 
 def correspondences(vertices_p, vertices_q, log_lr):

@@ -159,16 +159,11 @@ def merge_batch(P, Q, sigma, tau=DEFAULT_TAU, method="consensus", objective="lr"
     sigma = np.broadcast_to(np.asarray(sigma, dtype=float), (len(P),)).copy()
     if not np.all(np.isfinite(sigma) & (sigma > 0)):
         raise ValueError("sigma must be positive and finite for every map pair")
-    log_tau = resolve_log_tau(tau)
-    if objective not in OBJECTIVES:
-        raise ValueError(f"objective must be one of {OBJECTIVES}, got {objective!r}")
-    match = match_stage(P, Q, sigma, method, objective, log_tau)
-    if (cov_p is None) != (cov_q is None):
-        raise ValueError("cov_p and cov_q must be given together")
     if cov_p is not None:
-        cov_p, cov_q = (np.stack([check_covariances(c, x.shape[1], name) for c in np.asarray(cv, dtype=float)])
-                        for cv, x, name in ((cov_p, P, "cov_p"), (cov_q, Q, "cov_q")))
-    return merge_at(P, Q, sigma, match, np.full(len(P), log_tau), method, cov_p, cov_q, rng)
+        cov_p = np.stack([check_covariances(c, P.shape[1], "cov_p") for c in np.asarray(cov_p, dtype=float)])
+    if cov_q is not None:
+        cov_q = np.stack([check_covariances(c, Q.shape[1], "cov_q") for c in np.asarray(cov_q, dtype=float)])
+    return _merge(P, Q, sigma, tau, method, objective, cov_p, cov_q, rng)
 
 
 def merge_maps(P, Q, sigma, tau=DEFAULT_TAU, method="consensus", objective="lr", cov_p=None, cov_q=None,
@@ -222,17 +217,20 @@ def merge_maps(P, Q, sigma, tau=DEFAULT_TAU, method="consensus", objective="lr",
     Q = check_points(Q, "Q")
     sigma = check_sigma(sigma)
     cov_p, cov_q = check_covariances(cov_p, len(P), "cov_p"), check_covariances(cov_q, len(Q), "cov_q")
+    return _merge(P[None], Q[None], np.array([sigma]), tau, method, objective,
+                  None if cov_p is None else cov_p[None], None if cov_q is None else cov_q[None], rng).result(0)
+
+
+def _merge(P, Q, sigma, tau, method, objective, cov_p, cov_q, rng) -> MergeBatch:
+    """The checks ``merge_maps`` and ``merge_batch`` share, then the method's two stages."""
     if (cov_p is None) != (cov_q is None):
         raise ValueError("cov_p and cov_q must be given together")
     log_tau = resolve_log_tau(tau)
     get_method(method)
     if objective not in OBJECTIVES:
         raise ValueError(f"objective must be one of {OBJECTIVES}, got {objective!r}")
-    Pb, Qb, sig = P[None], Q[None], np.array([sigma])
-    match = match_stage(Pb, Qb, sig, method, objective, log_tau)
-    batch = merge_at(Pb, Qb, sig, match, np.array([log_tau]), method,
-                     None if cov_p is None else cov_p[None], None if cov_q is None else cov_q[None], rng)
-    return batch.result(0)
+    match = match_stage(P, Q, sigma, method, objective, log_tau)
+    return merge_at(P, Q, sigma, match, np.full(len(P), log_tau), method, cov_p, cov_q, rng)
 
 
 def _check_batch(maps, name: str) -> np.ndarray:

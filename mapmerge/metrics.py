@@ -295,18 +295,15 @@ def oracle_association(P, Q, theta, t, cov_p, cov_q, density_q: float, p_shared:
         Pairs (p index, q index), sorted by p index.
     """
     from scipy.optimize import linear_sum_assignment
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
 
-    from .alignment import rotate
+    from .alignment import covariance_in_p_frame, rotate
+    from .matching import candidate_components, component_blocks
 
     if not density_q > 0 or not 0 < p_shared < 1:
         raise ValueError("density_q must be > 0 and p_shared in (0, 1)")
-    c, s = np.cos(theta), np.sin(theta)
-    R = np.array([[c, -s], [s, c]])
     x = rotate(-theta, np.asarray(Q, float) - t)
-    cq = np.einsum("ji,njk,kl->nil", R, cov_q, R)
+    cq = covariance_in_p_frame(theta, cov_q)
     prior = -np.log(density_q) + np.log(p_shared / (1 - p_shared))
     # A pair can score > 0 only if d² < 2 (prior - log(2π √det C)): bound the search radius.
     det_min = np.linalg.det(cov_p).min() + np.linalg.det(cq).min()
@@ -324,16 +321,9 @@ def oracle_association(P, Q, theta, t, cov_p, cov_q, density_q: float, p_shared:
     i, j, score = i[keep], j[keep], score[keep]
     if i.size == 0:
         return np.empty((0, 2), dtype=np.intp)
-    n_p = len(P)
-    graph = coo_matrix((np.ones(i.size), (i, n_p + j)), shape=(n_p + len(Q),) * 2)
-    _, label = connected_components(graph, directed=False)
     pairs = []
-    for comp in np.unique(label[i]):
-        sel = label[i] == comp
-        rows, ri = np.unique(i[sel], return_inverse=True)
-        cols, ci = np.unique(j[sel], return_inverse=True)
-        gain = np.zeros((rows.size, cols.size))  # 0: unshared
-        gain[ri, ci] = score[sel]
+    # Leaving a landmark unshared scores 0.
+    for rows, cols, gain in component_blocks(i, j, score, candidate_components(i, j, len(P), len(Q)), 0.0):
         r, k = linear_sum_assignment(gain, maximize=True)
         chosen = gain[r, k] > 0
         pairs.append(np.stack([rows[r[chosen]], cols[k[chosen]]], axis=1))
