@@ -65,15 +65,16 @@ def example_tables(seed: int, scenario: dict, matcher: dict, trials) -> dict[str
             }))
         c = res.combined
         merged_ids = np.where(c.index_p >= 0, sc.ids_p[c.index_p], sc.ids_q[c.index_q])
-        for kind, pts, ids, origin in (
-            ("p", sc.p, sc.ids_p, "p"),
-            ("q", sc.q, sc.ids_q, "q"),
-            ("merged", c.points, merged_ids, c.origin),
-            ("truth", sc.truth, np.arange(len(sc.truth)), "truth"),
+        n_p, n_q, n_t = len(sc.p), len(sc.q), len(sc.truth)
+        for kind, pts, ids, origin, index_p, index_q in (
+            ("p", sc.p, sc.ids_p, "p", np.arange(n_p), np.full(n_p, -1)),
+            ("q", sc.q, sc.ids_q, "q", np.full(n_q, -1), np.arange(n_q)),
+            ("merged", c.points, merged_ids, c.origin, c.index_p, c.index_q),
+            ("truth", sc.truth, np.arange(n_t), "truth", np.full(n_t, -1), np.full(n_t, -1)),
         ):
             lm_rows.append(pd.DataFrame({
                 "trial": k, "kind": kind, "x": pts[:, 0], "y": pts[:, 1], "id": ids,
-                "origin": origin, "sigma": sc.sigma, "tau": rule,
+                "origin": origin, "sigma": sc.sigma, "tau": rule, "index_p": index_p, "index_q": index_q,
             }))
     return {
         "example_triangles": pd.concat(tri_rows, ignore_index=True),

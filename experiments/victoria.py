@@ -64,17 +64,14 @@ def quality(cut: int, source: str) -> tuple[dict, object]:
 
 def fused_vs_agents(merged: pd.DataFrame, pair) -> tuple[float, float]:
     """RMSE (after a rigid fit onto the reference trees) of the fused rows, and the better of the
-    two agents' own maps over the same trees."""
+    two agents' own maps over the same landmarks (each against its own tree)."""
     fused = merged[merged.origin == "fused"]
     if len(fused) < 3:
         return float("nan"), float("nan")
-    ids = fused.id.to_numpy()
-    reference = pair.truth[ids]
-    own = []
-    for pts, agent_ids in ((pair.p, pair.ids_p), (pair.q, pair.ids_q)):
-        rows = np.searchsorted(agent_ids, ids)
-        own.append(fit_error(pts[rows], reference)["rmse"])
-    return fit_error(fused[["x", "y"]].to_numpy(), reference)["rmse"], min(own)
+    rows_p, rows_q = fused.index_p.to_numpy(), fused.index_q.to_numpy()
+    own = [fit_error(pair.p[rows_p], pair.truth[pair.log_ids_p[rows_p]])["rmse"],
+           fit_error(pair.q[rows_q], pair.truth[pair.log_ids_q[rows_q]])["rmse"]]
+    return fit_error(fused[["x", "y"]].to_numpy(), pair.truth[pair.log_ids_p[rows_p]])["rmse"], min(own)
 
 
 def table(trials: pd.DataFrame, examples: pd.DataFrame) -> pd.DataFrame:

@@ -196,15 +196,20 @@ def transform_covariance(mu: np.ndarray, theta: float, sigma: float):
     return cov, mu_cov
 
 
-def mapped_covariance(x: np.ndarray, theta: float, cov: np.ndarray, var) -> np.ndarray:
+def mapped_covariance(x: np.ndarray, theta: float, cov: np.ndarray, own) -> np.ndarray:
     """Covariance (m, 2, 2) of q landmarks mapped into p's frame, x = Rᵀ(q - t).
 
-    ``var`` is the landmarks' own variance per coordinate (a scalar, or one
-    per landmark); ``cov`` the (θ, t) covariance of the transform.
+    ``own`` is the landmarks' own noise in q's frame: a variance per
+    coordinate (a scalar, or one per landmark) or full (m, 2, 2)
+    covariances; ``cov`` the (θ, t) covariance of the transform.
     """
     G = np.concatenate([(-(x @ ROT90.T))[:, :, None], np.broadcast_to(-rotation(theta).T, (x.shape[0], 2, 2))],
                        axis=2)
-    own = np.broadcast_to(np.asarray(var, dtype=float), (x.shape[0],))[:, None, None] * np.eye(2)
+    own = np.asarray(own, dtype=float)
+    if own.ndim == 3:
+        own = covariance_in_p_frame(theta, own)
+    else:
+        own = np.broadcast_to(own, (x.shape[0],))[:, None, None] * np.eye(2)
     return own + G @ cov @ G.transpose(0, 2, 1)
 
 

@@ -67,14 +67,21 @@ MATCH_NFA = 1e-6
 GATE_6, GATE_2 = float(chdtri(6, GATE_P)), float(chdtri(2, GATE_P))
 #: Hypotheses (most inliers first) refitted on their inliers and recounted.
 REFINE = 32
-#: Σ d² margin under which two landmark assignments are indistinguishable
-#: (a likelihood ratio below 1,000): triangles on such contested landmarks
-#: are not declared, though the landmarks are still fused. At unit density
+#: Log-likelihood margin under which two landmark assignments are
+#: indistinguishable (a likelihood ratio below 1,000): triangles on such
+#: contested landmarks are not declared, though the landmarks are still fused. At unit density
 #: and 30 dB about 4 % of landmarks have another within 5σ; at a ratio of
 #: 100, one wrong pick per 1,000 trials of 75 common landmarks still made a
 #: false triangle (a q-only landmark 3.5σ from a common one, noise put it
 #: nearer: the runner-up assignment was 160 times less likely).
-AMBIGUITY_D2 = 2 * np.log(1000.0)
+AMBIGUITY = np.log(1000.0)
+#: Prior probability π that a q landmark mapped among p's is shared, in the
+#: association's unshared hypothesis: starts neutral (log-odds 0), then is
+#: re-estimated from the association (paired / inside p's hull) within
+#: ``SHARED_RANGE``, ``PRIOR_ROUNDS`` associations in all.
+SHARED_PRIOR = 0.5
+SHARED_RANGE = (0.1, 0.99)
+PRIOR_ROUNDS = 2
 #: Refit-and-associate rounds after the consensus fit.
 ASSOCIATION_ROUNDS = 2
 
@@ -193,65 +200,108 @@ def _hough_pool(cp, cq, scores, sigma):
     return idx[np.argsort(-scores[idx], kind="stable")][:MAX_POOL]
 
 
-def associate(P, Q, alignment, sigma, var_p=None, var_q=None):
-    """One-to-one landmark association under a fitted transform.
+def posterior_association(P, x, cov_p, cov_x, log_prior: float):
+    """The maximum-posterior one-to-one association of P and mapped q landmarks x.
 
-    Each pair (i, j) with Mahalanobis distance
-    ``d² = eᵀ (v_pi I + v_qj I + Σ_t,j)⁻¹ e``, ``e = p_i - R(θ)ᵀ (q_j - t)``
-    (v the landmarks' variances, σ² unless given, Σ_t,j the fitted
-    transform's error at q_j), below the χ²₂ gate is a candidate; the
-    assignment minimising Σ d² is solved on each connected component of the
-    candidate graph.
+    Pair (i, j) scores its log-odds against "both unshared":
+    ``s_ij = log N(P_i - x_j; 0, cov_p[i] + cov_x[j]) + log_prior`` with
+    ``log_prior = log(π / (1 - π)) - log λ_q`` (π the prior that a landmark
+    is shared, λ_q the density of q landmarks: an unshared one is anywhere).
+    Leaving a landmark unpaired scores 0, so a pair is made only when it
+    beats both landmarks staying unshared and every competing pair. The total
+    score is maximised by an assignment on each connected component of the
+    positively scored pairs.
+
+    Parameters
+    ----------
+    P, x : (n_p, 2), (n_q, 2) ndarray
+        p's landmarks and q's mapped into p's frame.
+    cov_p, cov_x : (n_p, 2, 2), (n_q, 2, 2) ndarray
+        Their covariances in p's frame.
+    log_prior : float
+
+    Returns
+    -------
+    pairs : (K, 2) int ndarray
+        (p index, q index), sorted by p index.
+    margin : (K,) ndarray
+        Score lost if the pair were forbidden and one of its landmarks paired
+        otherwise (inf when no competing pairing exists); small margins mark
+        pairs the data cannot tell from a swap.
+    """
+    empty = np.empty((0, 2), dtype=np.intp), np.empty(0)
+    # A pair scores > 0 only if d² < 2 (log_prior - log(2π √det C)): bounds the search radius.
+    det_min = np.linalg.det(cov_p).min() + np.linalg.det(cov_x).min()
+    largest = np.linalg.eigvalsh(cov_p)[:, 1].max() + np.linalg.eigvalsh(cov_x)[:, 1].max()
+    d2_max = 2 * (log_prior - np.log(2 * np.pi * np.sqrt(det_min)))
+    if d2_max <= 0:
+        return empty
+    cand = cKDTree(P).sparse_distance_matrix(cKDTree(x), np.sqrt(d2_max * largest), output_type="coo_matrix")
+    i, j = cand.row, cand.col
+    C = cov_p[i] + cov_x[j]
+    e = P[i] - x[j]
+    d2 = np.einsum("ki,kij,kj->k", e, np.linalg.inv(C), e)
+    score = -0.5 * d2 - np.log(2 * np.pi * np.sqrt(np.linalg.det(C))) + log_prior
+    keep = score > 0
+    i, j, score = i[keep], j[keep], score[keep]
+    if i.size == 0:
+        return empty
+    comp = candidate_components(i, j, len(P), len(x))
+    single = np.bincount(comp)[comp] == 1  # the common case: one candidate, no contest
+    pairs, margins = [np.stack([i[single], j[single]], axis=1)], [np.full(int(single.sum()), np.inf)]
+    for rows, cols, gain in component_blocks(i[~single], j[~single], score[~single], comp[~single], 0.0):
+        r, c = linear_sum_assignment(gain, maximize=True)
+        keep = gain[r, c] > 0
+        best = gain[r, c].sum()
+        margin = np.full(int(keep.sum()), np.inf)
+        for m, (a, b) in enumerate(zip(r[keep], c[keep])):
+            alt = gain.copy()
+            alt[a, b] = 0.0
+            ra, ca = linear_sum_assignment(alt, maximize=True)
+            used = alt[ra, ca] > 0
+            # Only a re-pairing of a or b is a contest; both left unshared is not a swap.
+            if np.any(used & ((ra == a) | (ca == b))):
+                margin[m] = best - alt[ra[used], ca[used]].sum()
+        pairs.append(np.stack([rows[r[keep]], cols[c[keep]]], axis=1))
+        margins.append(margin)
+    pairs, margins = np.concatenate(pairs).astype(np.intp), np.concatenate(margins)
+    order = np.argsort(pairs[:, 0], kind="stable")
+    return pairs[order], margins[order]
+
+
+def associate(P, Q, alignment, sigma, cov_p=None, cov_q=None):
+    """One-to-one landmark association under a fitted transform (``posterior_association``).
+
+    The pair covariance is p's noise plus q's brought into p's frame plus the
+    fitted transform's error at q_j; landmark noise is σ² I unless
+    ``cov_p``/``cov_q`` (n, 2, 2) are given. λ_q is q's landmark count over
+    its convex hull's area; π starts at ``SHARED_PRIOR`` and is re-estimated
+    from the association (``PRIOR_ROUNDS``).
 
     Returns
     -------
     pairs : (K, 2) int ndarray
         Landmark pairs (p, q), sorted by p index.
     contested : (K,) bool ndarray
-        Pairs whose best alternative assignment is within ``AMBIGUITY_D2``
-        in Σ d² (e.g. two landmarks closer than the noise, which can swap).
+        Pairs whose best alternative assignment is within ``AMBIGUITY`` in
+        log-likelihood (e.g. two landmarks closer than the noise, which can swap).
     """
-    var_p, var_q = _variances(var_p, len(P), sigma), _variances(var_q, len(Q), sigma)
     x = (Q - alignment.t) @ rotation(alignment.theta)
-    cov_q = mapped_covariance(x, alignment.theta, alignment.cov, var_q)
-    gate = GATE_2
-    radius = np.sqrt(gate * (np.linalg.eigvalsh(cov_q)[:, 1].max() + var_p.max()))
-    cand = cKDTree(P).sparse_distance_matrix(cKDTree(x), radius, output_type="coo_matrix")
-    i, j = cand.row, cand.col
-    e = P[i] - x[j]
-    cov = cov_q[j] + var_p[i, None, None] * np.eye(2)
-    d2 = np.einsum("ki,kij,kj->k", e, np.linalg.inv(cov), e)
-    ok = d2 <= gate
-    i, j, d2 = i[ok], j[ok], d2[ok]
-    if i.size == 0:
-        return np.empty((0, 2), dtype=np.intp), np.empty(0, dtype=bool)
-    n_p = P.shape[0]
-    comp = candidate_components(i, j, n_p, len(Q))
-    single = np.bincount(comp)[comp] == 1  # the common case: one candidate, no contest
-    pairs = [np.stack([i[single], j[single]], axis=1)]
-    contested = [np.zeros(int(single.sum()), dtype=bool)]
-    # Leaving a landmark unpaired costs the gate.
-    for rows, cols, cost in component_blocks(i[~single], j[~single], d2[~single], comp[~single], gate):
-        r, c = linear_sum_assignment(cost)
-        keep = cost[r, c] < gate
-        best = cost[r, c].sum()
-        # A pair is contested when forbidding it costs less than the margin:
-        # the data cannot tell that assignment from the runner-up.
-        margin = np.empty(int(keep.sum()))
-        for m, (a, b) in enumerate(zip(r[keep], c[keep])):
-            alt = cost.copy()
-            alt[a, b] = 2 * gate
-            ra, ca = linear_sum_assignment(alt)
-            margin[m] = np.minimum(alt[ra, ca], gate).sum() - best
-        pairs.append(np.stack([rows[r[keep]], cols[c[keep]]], axis=1))
-        contested.append(margin < AMBIGUITY_D2)
-    pairs = np.concatenate(pairs).astype(np.intp)
-    contested = np.concatenate(contested)
-    order = np.argsort(pairs[:, 0], kind="stable")
-    return pairs[order], contested[order]
+    cov_x = mapped_covariance(x, alignment.theta, alignment.cov, sigma**2 if cov_q is None else cov_q)
+    if cov_p is None:
+        cov_p = np.broadcast_to(sigma**2 * np.eye(2), (len(P), 2, 2))
+    log_density = np.log(len(Q) / ConvexHull(Q).volume)
+    hull = ConvexHull(P)
+    n_inside = max(int(np.sum(np.all(x @ hull.equations[:, :2].T + hull.equations[:, 2] <= 0, axis=1))), 1)
+    shared = SHARED_PRIOR
+    for _ in range(PRIOR_ROUNDS):
+        pairs, margin = posterior_association(P, x, cov_p, cov_x, np.log(shared / (1 - shared)) - log_density)
+        # π re-estimated as the paired fraction of q's landmarks that land among p's.
+        shared = float(np.clip(len(pairs) / n_inside, *SHARED_RANGE))
+    return pairs, margin < AMBIGUITY
 
 
-def match_nfa(P, Q, alignment, pairs, n_hypotheses: int, sigma: float, var_p=None, var_q=None) -> float:
+def match_nfa(P, Q, alignment, pairs, n_hypotheses: int, sigma: float, cov_p=None, cov_q=None) -> float:
     """Number of false alarms of a match, a contrario (Moisan & Stival 2004).
 
     Under "unrelated maps", a q landmark mapped inside map p's hull finds a p
@@ -264,15 +314,17 @@ def match_nfa(P, Q, alignment, pairs, n_hypotheses: int, sigma: float, var_p=Non
     ``n_hypotheses · C(N, k - 3) · α(d²_(k))^(k-3)`` over k. A match with
     NFA <= ``MATCH_NFA`` is expected to arise by chance at most that often.
     """
-    var_p, var_q = _variances(var_p, len(P), sigma), _variances(var_q, len(Q), sigma)
+    if cov_p is None:
+        cov_p = np.broadcast_to(sigma**2 * np.eye(2), (len(P), 2, 2))
     x = (Q - alignment.t) @ rotation(alignment.theta)
-    cov = mapped_covariance(x, alignment.theta, alignment.cov, var_q) + np.median(var_p) * np.eye(2)
+    cov_x = mapped_covariance(x, alignment.theta, alignment.cov, sigma**2 if cov_q is None else cov_q)
+    cov = cov_x + np.median(np.trace(cov_p, axis1=1, axis2=2) / 2) * np.eye(2)  # a typical p landmark
     hull = ConvexHull(P)
     inside = np.all(x @ hull.equations[:, :2].T + hull.equations[:, 2] <= 0, axis=1)
     density = P.shape[0] / hull.volume  # a 2-D hull's "volume" is its area
     unit_area = density * np.pi * np.sqrt(np.linalg.det(cov[inside | np.isin(np.arange(len(Q)), pairs[:, 1])])).mean()
     e = P[pairs[:, 0]] - x[pairs[:, 1]]
-    cov_pairs = cov[pairs[:, 1]] + (var_p[pairs[:, 0]] - np.median(var_p))[:, None, None] * np.eye(2)
+    cov_pairs = cov_x[pairs[:, 1]] + cov_p[pairs[:, 0]]
     d2 = np.sort(np.einsum("ki,kij,kj->k", e, np.linalg.inv(cov_pairs), e))
     n_in = max(int(inside.sum()), len(pairs))
     k = np.arange(4, len(pairs) + 1)
@@ -321,11 +373,7 @@ def declared_triangles(vertices_p, vertices_q, pairs, P, Q, sigma):
     return tri_pairs, -cost / (2.0 * sigma**2)
 
 
-def _variances(var, n: int, sigma: float) -> np.ndarray:
-    return np.full(n, sigma**2) if var is None else np.asarray(var, dtype=float)
-
-
-def consensus_pairs(P, Q, sigma, vp, vq, scores, var_p=None, var_q=None):
+def consensus_pairs(P, Q, sigma, vp, vq, scores, cov_p=None, cov_q=None):
     """Landmark associations of one map pair from its candidate triangle pairs.
 
     Parameters
@@ -337,9 +385,9 @@ def consensus_pairs(P, Q, sigma, vp, vq, scores, var_p=None, var_q=None):
         Candidate triangle pairs (passing log τ), vertices paired.
     scores : (C,) ndarray
         Their log Λ.
-    var_p, var_q : (n,) ndarray, optional
-        Per-landmark variances (per coordinate) used by the association
-        gates and the significance test instead of σ².
+    cov_p, cov_q : (n, 2, 2) ndarray, optional
+        Per-landmark covariances used by the association and the
+        significance test instead of σ² I.
 
     Returns
     -------
@@ -360,14 +408,14 @@ def consensus_pairs(P, Q, sigma, vp, vq, scores, var_p=None, var_q=None):
         if pairs.shape[0] < 3:
             break
         pairs, contested = associate(P, Q, align_pairs(P[pairs[:, 0]], Q[pairs[:, 1]], sigma), sigma,
-                                     var_p, var_q)
+                                     cov_p, cov_q)
     if pairs.shape[0] < 3 or match_nfa(P, Q, align_pairs(P[pairs[:, 0]], Q[pairs[:, 1]], sigma), pairs,
-                                       len(scores), sigma, var_p, var_q) > MATCH_NFA:
+                                       len(scores), sigma, cov_p, cov_q) > MATCH_NFA:
         return np.empty((0, 2), dtype=np.intp), np.empty(0, dtype=bool), n_conflicts
     return pairs, contested, n_conflicts
 
 
-def consensus_merge(P, Q, sigma, match: TriangleMatch, log_tau, var_p=None, var_q=None) -> MergeBatch:
+def consensus_merge(P, Q, sigma, match: TriangleMatch, log_tau, cov_p=None, cov_q=None) -> MergeBatch:
     """The ``method="consensus"`` merge of a batch of map pairs.
 
     Parameters
@@ -376,8 +424,8 @@ def consensus_merge(P, Q, sigma, match: TriangleMatch, log_tau, var_p=None, var_
     sigma, log_tau : (B,) ndarray
     match : TriangleMatch
         Tentative pairs with the order-robust statistic.
-    var_p, var_q : (B, n) ndarray, optional
-        Per-landmark variances.
+    cov_p, cov_q : (B, n, 2, 2) ndarray, optional
+        Per-landmark covariances.
 
     Returns
     -------
@@ -394,7 +442,7 @@ def consensus_merge(P, Q, sigma, match: TriangleMatch, log_tau, var_p=None, var_
         vp, vq, scores = match.p_vertices[passing], match.q_vertices[passing], match.log_lr[passing]
         pairs, contested, n_conflicts = consensus_pairs(
             P[b], Q[b], float(sigma[b]), vp, vq, scores,
-            None if var_p is None else var_p[b], None if var_q is None else var_q[b])
+            None if cov_p is None else cov_p[b], None if cov_q is None else cov_q[b])
         tri_p, tri_q = match.tri_p[b].vertices, match.tri_q[b].vertices
         lp_pairs, lp_scores = match.triangle_pairs[sel], match.log_lr[sel]
         if len(pairs):

@@ -116,9 +116,7 @@ def _merge_at(P, Q, sigma, match, log_tau, method, cov_p, cov_q, rng) -> MergeBa
     if m.baseline is not None:
         return m.baseline(P, Q, sigma, triangulate_batch(P), triangulate_batch(Q), rng)
     if m.name == "consensus":
-        var_p = None if cov_p is None else np.trace(cov_p, axis1=2, axis2=3) / 2
-        var_q = None if cov_q is None else np.trace(cov_q, axis1=2, axis2=3) / 2
-        return consensus.consensus_merge(P, Q, sigma, match, log_tau, var_p, var_q)
+        return consensus.consensus_merge(P, Q, sigma, match, log_tau, cov_p, cov_q)
     declared = match.log_lr >= log_tau[match.trial]
     # Landmark indices offset by pair so that one call resolves every pair's conflicts.
     n = max(P.shape[1], Q.shape[1])

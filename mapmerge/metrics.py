@@ -294,38 +294,11 @@ def oracle_association(P, Q, theta, t, cov_p, cov_q, density_q: float, p_shared:
     (K, 2) int ndarray
         Pairs (p index, q index), sorted by p index.
     """
-    from scipy.optimize import linear_sum_assignment
-    from scipy.spatial import cKDTree
-
     from .alignment import covariance_in_p_frame, rotate
-    from .matching import candidate_components, component_blocks
+    from .consensus import posterior_association
 
     if not density_q > 0 or not 0 < p_shared < 1:
         raise ValueError("density_q must be > 0 and p_shared in (0, 1)")
     x = rotate(-theta, np.asarray(Q, float) - t)
-    cq = covariance_in_p_frame(theta, cov_q)
-    prior = -np.log(density_q) + np.log(p_shared / (1 - p_shared))
-    # A pair can score > 0 only if d² < 2 (prior - log(2π √det C)): bound the search radius.
-    det_min = np.linalg.det(cov_p).min() + np.linalg.det(cq).min()
-    largest = np.linalg.eigvalsh(cov_p)[:, 1].max() + np.linalg.eigvalsh(cq)[:, 1].max()
-    d2_max = 2 * (prior - np.log(2 * np.pi * np.sqrt(det_min)))
-    if d2_max <= 0:
-        return np.empty((0, 2), dtype=np.intp)
-    cand = cKDTree(P).sparse_distance_matrix(cKDTree(x), np.sqrt(d2_max * largest), output_type="coo_matrix")
-    i, j = cand.row, cand.col
-    C = cov_p[i] + cq[j]
-    e = P[i] - x[j]
-    d2 = np.einsum("ki,kij,kj->k", e, np.linalg.inv(C), e)
-    score = -0.5 * d2 - np.log(2 * np.pi * np.sqrt(np.linalg.det(C))) + prior
-    keep = score > 0
-    i, j, score = i[keep], j[keep], score[keep]
-    if i.size == 0:
-        return np.empty((0, 2), dtype=np.intp)
-    pairs = []
-    # Leaving a landmark unshared scores 0.
-    for rows, cols, gain in component_blocks(i, j, score, candidate_components(i, j, len(P), len(Q)), 0.0):
-        r, k = linear_sum_assignment(gain, maximize=True)
-        chosen = gain[r, k] > 0
-        pairs.append(np.stack([rows[r[chosen]], cols[k[chosen]]], axis=1))
-    pairs = np.concatenate(pairs).astype(np.intp)
-    return pairs[np.argsort(pairs[:, 0], kind="stable")]
+    log_prior = np.log(p_shared / (1 - p_shared)) - np.log(density_q)
+    return posterior_association(np.asarray(P, float), x, cov_p, covariance_in_p_frame(theta, cov_q), log_prior)[0]
