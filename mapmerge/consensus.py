@@ -415,7 +415,8 @@ def consensus_pairs(P, Q, sigma, vp, vq, scores, cov_p=None, cov_q=None):
     return pairs, contested, n_conflicts
 
 
-def consensus_merge(P, Q, sigma, match: TriangleMatch, log_tau, cov_p=None, cov_q=None) -> MergeBatch:
+def consensus_merge(P, Q, sigma, match: TriangleMatch, log_tau, cov_p=None, cov_q=None,
+                    fallback=None) -> MergeBatch:
     """The ``method="consensus"`` merge of a batch of map pairs.
 
     Parameters
@@ -426,6 +427,10 @@ def consensus_merge(P, Q, sigma, match: TriangleMatch, log_tau, cov_p=None, cov_
         Tentative pairs with the order-robust statistic.
     cov_p, cov_q : (B, n, 2, 2) ndarray, optional
         Per-landmark covariances.
+    fallback : callable, optional
+        ``fallback(P, Q, sigma, cov_p, cov_q) -> (pairs, contested, nfa)``
+        for one map pair, run when the triangles give no significant match
+        (``search.search_pairs``: the global search).
 
     Returns
     -------
@@ -443,6 +448,9 @@ def consensus_merge(P, Q, sigma, match: TriangleMatch, log_tau, cov_p=None, cov_
         pairs, contested, n_conflicts = consensus_pairs(
             P[b], Q[b], float(sigma[b]), vp, vq, scores,
             None if cov_p is None else cov_p[b], None if cov_q is None else cov_q[b])
+        if len(pairs) == 0 and fallback is not None:
+            pairs, contested, _ = fallback(P[b], Q[b], float(sigma[b]), None if cov_p is None else cov_p[b],
+                                           None if cov_q is None else cov_q[b])
         tri_p, tri_q = match.tri_p[b].vertices, match.tri_q[b].vertices
         lp_pairs, lp_scores = match.triangle_pairs[sel], match.log_lr[sel]
         if len(pairs):

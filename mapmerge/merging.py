@@ -22,7 +22,7 @@ from typing import Callable
 
 import numpy as np
 
-from . import consensus
+from . import consensus, search
 from ._validation import check_covariances, check_points, check_sigma
 from .baselines import astroalign as astroalign_baseline
 from .baselines import groth as groth_baseline
@@ -66,7 +66,10 @@ METHODS = {m.name: m for m in (
     Method("paper", "the seed paper: Groth order, GLRT, LP (14), τ, eq. (15)"),
     Method("cyclic", "the paper with the order-robust statistic (best cyclic vertex order)", cyclic=True),
     Method("consensus", "order-robust statistic + transform-consistent verification, landmark association "
-           "and an a contrario acceptance test (use this on real maps)", cyclic=True, solve_lp=False),
+           "and an a contrario acceptance test, the global search when triangles find nothing (use this)",
+           cyclic=True, solve_lp=False),
+    Method("search", "global (θ, t) search with an a contrario acceptance test, no triangles (low SNR)",
+           uses_tau=False),
     Method("groth", "baseline: Groth (1986) invariant triangle voting", uses_tau=False,
            baseline=groth_baseline.merge),
     Method("astroalign", "baseline: astroalign.find_transform (optional extra [baselines])", uses_tau=False,
@@ -115,8 +118,10 @@ def _merge_at(P, Q, sigma, match, log_tau, method, cov_p, cov_q, rng) -> MergeBa
     m = get_method(method)
     if m.baseline is not None:
         return m.baseline(P, Q, sigma, triangulate_batch(P), triangulate_batch(Q), rng)
+    if m.name == "search":
+        return search.search_merge(P, Q, sigma, triangulate_batch(P), triangulate_batch(Q), cov_p, cov_q)
     if m.name == "consensus":
-        return consensus.consensus_merge(P, Q, sigma, match, log_tau, cov_p, cov_q)
+        return consensus.consensus_merge(P, Q, sigma, match, log_tau, cov_p, cov_q, fallback=search.search_pairs)
     declared = match.log_lr >= log_tau[match.trial]
     # Landmark indices offset by pair so that one call resolves every pair's conflicts.
     n = max(P.shape[1], Q.shape[1])

@@ -1,0 +1,221 @@
+"""Global transform search: merging where triangles stop discriminating.
+
+Below about 17 dB the noise distorts triangles as much as the differences
+between them, so triangle matching finds nothing, yet the maps still hold
+the transform: many weak coincidences add up. ``search_pairs`` finds it
+without any correspondence:
+
+1. Rotations on a grid of step ``r / R`` (``r`` the match radius,
+   ``R`` the largest distance of a p landmark from p's centroid), so a grid
+   rotation is within ``r / 2`` of the true one at every landmark.
+2. At each rotation every landmark pair (i, j) votes for the translation
+   ``t = q_j - R(θ) p_i``, counted on a grid of cells ``r`` wide summed
+   over 2 x 2 windows; the fullest windows over all rotations are the
+   hypotheses (``N_PEAKS``, at distinct rotations).
+3. Each hypothesis is refined: nearest-neighbour pairs, refitted with the
+   n-point closed form, the pairing radius halved each round from the vote
+   cell's down to 2r (``REFINE_ROUNDS``), then the posterior landmark
+   association of ``consensus.associate``.
+4. Acceptance is a contrario: under "unrelated maps", each of the N q
+   landmarks mapped inside p's hull has a p landmark within ``r`` with
+   probability ``α = 1 - exp(-λ_p π r²)`` (p's landmarks a Poisson process
+   of density λ_p). With k such landmarks at the refined transform,
+   ``NFA = H · |RADII| · P(Binomial(N, α) >= k)``, H the number of
+   (rotation, translation window) hypotheses searched; the match is
+   accepted when NFA <= ``SEARCH_NFA``. Counting every landmark near a
+   partner pools evidence no single landmark carries, which is what works
+   at 10 dB, where a chance partner lies within the noise of most landmarks.
+
+The search costs O(n_θ n_p n_q): meant for maps of up to a few hundred
+landmarks (larger maps are split into ``MAX_SEARCH_LANDMARKS`` nearest the
+centroid of each map for the coarse search, and refined on all).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import ConvexHull, cKDTree
+from scipy.stats import binom
+
+from .alignment import align_pairs, rotation
+from .consensus import associate, declared_triangles
+from .result import MergeBatch, build_from_parts
+from .triangles import TriangleBatch
+
+#: Match radii of the acceptance test, in units of the pair noise σ_pair (the
+#: standard deviation per coordinate of p_i - x_j for a true pair). The
+#: smallest also sets the rotation step and the translation cells.
+RADII = (1.0, 2.0)
+#: Hypotheses refined (the fullest translation windows, at distinct rotations).
+N_PEAKS = 8
+#: Nearest-neighbour refit rounds of a hypothesis before the association.
+REFINE_ROUNDS = 4
+#: A match is accepted when its number of false alarms is at most this: an
+#: unrelated pair of maps passes with probability at most about this.
+SEARCH_NFA = 1e-4
+#: Landmarks per map used to vote (the ones nearest its centroid).
+MAX_SEARCH_LANDMARKS = 300
+#: Coarsest vote cell, in landmark spacings (√(hull area / n) of p).
+COARSE_SPACING = 0.3
+#: Largest rotation grid (a finer step than this needs is not searched).
+MAX_ROTATIONS = 1440
+
+
+def _pair_sigma(sigma: float, cov_p, cov_q) -> float:
+    if cov_p is None:
+        return float(np.sqrt(2.0) * sigma)
+    var = np.median(np.trace(cov_p, axis1=1, axis2=2)) / 2 + np.median(np.trace(cov_q, axis1=1, axis2=2)) / 2
+    return float(np.sqrt(var))
+
+
+def _central(X: np.ndarray, m: int) -> np.ndarray:
+    if len(X) <= m:
+        return X
+    return X[np.argsort(np.sum((X - X.mean(axis=0)) ** 2, axis=1), kind="stable")[:m]]
+
+
+def _hypotheses(P: np.ndarray, Q: np.ndarray, r: float):
+    """Coarse search: the fullest (θ, t) vote windows, the cell width, and the number of hypotheses at resolution r.
+
+    The vote cells are ``r`` wide, or ``COARSE_SPACING`` landmark spacings
+    when that is wider (low noise: a finer grid only costs time, the
+    refinement finds the exact transform). The hypothesis count for the
+    acceptance test is taken at resolution ``r`` whatever the grid.
+    """
+    Ps, Qs = _central(P, MAX_SEARCH_LANDMARKS), _central(Q, MAX_SEARCH_LANDMARKS)
+    reach = np.sqrt(np.max(np.sum((Ps - Ps.mean(axis=0)) ** 2, axis=1)))
+    spacing = np.sqrt(ConvexHull(Ps).volume / len(Ps))
+    cell = max(r, COARSE_SPACING * spacing)
+    n_theta = int(np.clip(np.ceil(2 * np.pi * reach / cell), 8, MAX_ROTATIONS))
+    thetas = 2 * np.pi * np.arange(n_theta) / n_theta
+    # Translations are voted relative to q's centroid minus rotated p's centroid.
+    pc, qc = Ps - Ps.mean(axis=0), Qs - Qs.mean(axis=0)
+    half = np.sqrt(np.max(np.sum(pc**2, axis=1))) + np.sqrt(np.max(np.sum(qc**2, axis=1)))
+    n_cells = int(np.ceil(2 * half / cell)) + 1
+    best_count = np.zeros(n_theta, dtype=np.int64)
+    best_t = np.zeros((n_theta, 2))
+    chunk = max(1, 4_000_000 // (len(pc) * len(qc)))
+    for a in range(0, n_theta, chunk):
+        th = thetas[a:a + chunk]
+        c, s = np.cos(th), np.sin(th)
+        rx = c[:, None] * pc[None, :, 0] - s[:, None] * pc[None, :, 1]
+        ry = s[:, None] * pc[None, :, 0] + c[:, None] * pc[None, :, 1]
+        tx = qc[None, None, :, 0] - rx[:, :, None]
+        ty = qc[None, None, :, 1] - ry[:, :, None]
+        ix = np.floor((tx + half) / cell).astype(np.int64).reshape(len(th), -1)
+        iy = np.floor((ty + half) / cell).astype(np.int64).reshape(len(th), -1)
+        key = (np.arange(len(th))[:, None] * n_cells + ix) * n_cells + iy
+        grid = np.bincount(key.ravel(), minlength=len(th) * n_cells**2).reshape(len(th), n_cells, n_cells)
+        # 2 x 2 windows: a true pile-up split by a cell boundary is counted whole.
+        window = grid[:, :-1, :-1] + grid[:, 1:, :-1] + grid[:, :-1, 1:] + grid[:, 1:, 1:]
+        flat = window.reshape(len(th), -1)
+        arg = flat.argmax(axis=1)
+        best_count[a:a + chunk] = flat[np.arange(len(th)), arg]
+        wx, wy = np.divmod(arg, n_cells - 1)
+        best_t[a:a + chunk] = np.stack([(wx + 1) * cell - half, (wy + 1) * cell - half], axis=1)
+    order = np.argsort(-best_count, kind="stable")[:N_PEAKS]
+    theta = thetas[order]
+    # Back to the maps' own frames: q = R p + t with t = qc_mean + t_centred - R pc_mean.
+    (mx, my), c, s = Ps.mean(axis=0), np.cos(theta), np.sin(theta)
+    t = Qs.mean(axis=0) + best_t[order] - np.stack([c * mx - s * my, s * mx + c * my], axis=1)
+    n_hypotheses = np.ceil(2 * np.pi * reach / r) * np.ceil(2 * half / r) ** 2
+    return theta, t, cell, float(n_hypotheses)
+
+
+def _refine(P, Q, theta, t, r, cell, sigma):
+    """Nearest-neighbour pairs, refitted, the radius halved each round from the coarse cell's to 2r.
+
+    Returns the last alignment, or None.
+    """
+    tree = cKDTree(P)
+    al = None
+    for k in range(REFINE_ROUNDS):
+        x = (Q - t) @ rotation(theta)
+        dist, i = tree.query(x, distance_upper_bound=max(2 * r, 2 * cell / 2**k))
+        j = np.flatnonzero(np.isfinite(dist))
+        # One-to-one: each p landmark keeps its nearest q landmark.
+        order = np.lexsort((dist[j], i[j]))
+        j = j[order][np.r_[True, i[j][order][1:] != i[j][order][:-1]]] if j.size else j
+        if j.size < 3:
+            return None
+        al = align_pairs(P[i[j]], Q[j], sigma)
+        theta, t = al.theta, al.t
+    return al
+
+
+def _log_nfa(P, Q, theta, t, r, n_hypotheses: int) -> float:
+    """log NFA of a transform: the a contrario count test (module docstring, step 4)."""
+    hull = ConvexHull(P)
+    x = (Q - t) @ rotation(theta)
+    inside = np.all(x @ hull.equations[:, :2].T + hull.equations[:, 2] <= 1e-12, axis=1)
+    n = int(inside.sum())
+    if n == 0:
+        return np.inf
+    dist, _ = cKDTree(P).query(x[inside])
+    density = len(P) / hull.volume
+    best = np.inf
+    for k_r in RADII:
+        radius = k_r * r
+        alpha = 1.0 - np.exp(-density * np.pi * radius**2)
+        k = int(np.sum(dist <= radius))
+        best = min(best, float(binom.logsf(k - 1, n, alpha)))
+    return float(np.log(n_hypotheses * len(RADII)) + best)
+
+
+def search_pairs(P, Q, sigma: float, cov_p=None, cov_q=None):
+    """Landmark associations of one map pair found by the global search.
+
+    Parameters
+    ----------
+    P, Q : (n_p, 2), (n_q, 2) ndarray
+    sigma : float
+    cov_p, cov_q : (n, 2, 2) ndarray, optional
+        Per-landmark covariances (the pair noise and the association use them).
+
+    Returns
+    -------
+    pairs : (K, 2) int ndarray
+        Associations (empty when no hypothesis is significant).
+    contested : (K,) bool ndarray
+    nfa : float
+        Number of false alarms of the best hypothesis.
+    """
+    r = RADII[0] * _pair_sigma(sigma, cov_p, cov_q)
+    thetas, ts, cell, n_hyp = _hypotheses(P, Q, r)
+    best = (np.inf, None)
+    for theta, t in zip(thetas, ts):
+        al = _refine(P, Q, float(theta), t, r, cell, sigma)
+        if al is None:
+            continue
+        log_nfa = _log_nfa(P, Q, al.theta, al.t, r, n_hyp)
+        if log_nfa < best[0]:
+            best = (log_nfa, al)
+    log_nfa, al = best
+    empty = np.empty((0, 2), dtype=np.intp), np.empty(0, dtype=bool)
+    if al is None or log_nfa > np.log(SEARCH_NFA):
+        return *empty, float(np.exp(min(log_nfa, 700.0)))
+    pairs, contested = associate(P, Q, al, sigma, cov_p, cov_q)
+    if len(pairs) < 3:
+        return *empty, float(np.exp(log_nfa))
+    return pairs, contested, float(np.exp(log_nfa))
+
+
+def search_merge(P, Q, sigma, tri_p: TriangleBatch, tri_q: TriangleBatch, cov_p=None, cov_q=None) -> MergeBatch:
+    """The ``method="search"`` merge of B map pairs (one search per pair).
+
+    Triangles are not used to find the transform; the triangle pairs whose
+    three landmarks were associated (and not contested) are reported as
+    declared, with their log Λ.
+    """
+    parts = []
+    for b in range(len(P)):
+        pairs, contested, _ = search_pairs(P[b], Q[b], float(sigma[b]), None if cov_p is None else cov_p[b],
+                                           None if cov_q is None else cov_q[b])
+        if len(pairs):
+            tri_pairs, scores = declared_triangles(tri_p[b].vertices, tri_q[b].vertices, pairs[~contested],
+                                                   P[b], Q[b], float(sigma[b]))
+        else:
+            tri_pairs, scores = np.empty((0, 2), dtype=np.intp), np.empty(0)
+        parts.append((tri_pairs, scores, np.ones(len(tri_pairs), bool), pairs, 0))
+    return build_from_parts(method="search", P=P, Q=Q, sigma=sigma, log_tau=np.full(len(P), np.nan),
+                            tri_p=tri_p, tri_q=tri_q, parts=parts)
