@@ -26,7 +26,10 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
+from scipy.spatial import ConvexHull  # noqa: E402
+
 from mapmerge.datasets import DEFAULT_CUT, fit_error, map_quality, victoria_park  # noqa: E402
+from mapmerge.metrics import oracle_association  # noqa: E402
 
 from .aggregate import find_runs, save_table  # noqa: E402
 from .figures import STYLE, _save  # noqa: E402
@@ -36,7 +39,8 @@ SWEEP = Path("outputs/sweeps/victoria_park")
 COLUMNS = {
     "cut": "cut", "source": "source", "method": "method", "use_cov": "covariances", "n_p": "trees p",
     "n_q": "trees q", "n_common_landmarks": "common", "map_rmse_p": "map RMSE p (m)", "map_rmse_q": "map RMSE q (m)",
-    "correct_pairs": "correct", "wrong_pairs": "wrong", "rot_err_deg": "rot err (deg)",
+    "correct_pairs": "correct", "wrong_pairs": "wrong", "oracle_correct": "oracle correct",
+    "oracle_wrong": "oracle wrong", "rot_err_deg": "rot err (deg)",
     "rot_err_first_pose_deg": "rot err vs first poses (deg)", "fused_rmse": "fused RMSE (m)",
     "agents_rmse": "better agent, same trees (m)", "ms": "time (ms)",
 }
@@ -62,6 +66,15 @@ def quality(cut: int, source: str) -> tuple[dict, object]:
     return map_quality(pair), pair
 
 
+def oracle_pairs(pair) -> tuple[int, int]:
+    """Correct and wrong pairs of the oracle association (the fit-by-ids transform, the agents'
+    covariances, q's density over its hull, π = 1/2)."""
+    density = len(pair.q) / ConvexHull(pair.q).volume
+    pairs = oracle_association(pair.p, pair.q, pair.theta, pair.t, pair.cov_p, pair.cov_q, density, 0.5)
+    correct = int(np.sum(pair.ids_p[pairs[:, 0]] == pair.ids_q[pairs[:, 1]]))
+    return correct, len(pairs) - correct
+
+
 def fused_vs_agents(merged: pd.DataFrame, pair) -> tuple[float, float]:
     """RMSE (after a rigid fit onto the reference trees) of the fused rows, and the better of the
     two agents' own maps over the same landmarks (each against its own tree)."""
@@ -83,6 +96,7 @@ def table(trials: pd.DataFrame, examples: pd.DataFrame) -> pd.DataFrame:
         q, pair = quality(int(cut), source)
         trials.loc[rows.index, "map_rmse_p"] = q["p"]["rmse"]
         trials.loc[rows.index, "map_rmse_q"] = q["q"]["rmse"]
+        trials.loc[rows.index, ["oracle_correct", "oracle_wrong"]] = oracle_pairs(pair)
         for i, row in rows.iterrows():
             ex = examples[(examples.cut == cut) & (examples.source == source) & (examples.method == row.method)
                           & (examples.use_cov == row.use_cov) & (examples.kind == "merged")]
