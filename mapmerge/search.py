@@ -27,8 +27,10 @@ without any correspondence:
    at 10 dB, where a chance partner lies within the noise of most landmarks.
 
 The search costs O(n_θ n_p n_q): meant for maps of up to a few hundred
-landmarks (larger maps are split into ``MAX_SEARCH_LANDMARKS`` nearest the
-centroid of each map for the coarse search, and refined on all).
+landmarks. On larger maps the votes use only the ``MAX_SEARCH_LANDMARKS``
+landmarks nearest each map's centroid (refinement and the test use all),
+which finds the transform only when those two central patches overlap:
+1,000-landmark maps at 15 dB merge (0.7 s), 10,000-landmark maps do not.
 """
 
 from __future__ import annotations
