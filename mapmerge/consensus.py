@@ -16,8 +16,8 @@ between unrelated triangles do not. ``consensus_merge``:
    ``MIN_CONSENSUS`` triangle pairs, otherwise "no match"; on large maps
    grown ring by ring from the hypothesis), refits with the n-point closed
    form dropping outliers, then associates *every* landmark one-to-one under
-   the fitted transform with a χ²₂ gate on the Mahalanobis distance
-   (assignment per connected component of the gated candidate graph), and
+   the fitted transform by posterior log-odds against "unshared"
+   (``posterior_association``: full covariances, q's landmark density), and
    refits on all associations (``ASSOCIATION_ROUNDS`` times), and accepts
    the match only if chance would rarely produce one as good
    (``match_nfa``, an a contrario test);
@@ -25,6 +25,9 @@ between unrelated triangles do not. ``consensus_merge``:
    not contested (two landmarks closer than the noise can swap, and no
    data can tell which way), and fuses every association, so common
    landmarks appear once in the combined map.
+
+When the triangles give no significant match, ``consensus_merge`` runs its
+``fallback`` (the global search of ``mapmerge.search``).
 """
 
 from __future__ import annotations
@@ -63,14 +66,14 @@ GROW_FACTOR = 3.0
 #: at 1e-3, 2 of 1,000 unrelated pairs at 40 dB still merged; at 1e-6, none.
 #: True overlaps of tens of landmarks have NFA far below either.
 MATCH_NFA = 1e-6
-#: The χ² quantiles of the gates: 3 vertices (6 coordinates) and 1 landmark.
-GATE_6, GATE_2 = float(chdtri(6, GATE_P)), float(chdtri(2, GATE_P))
+#: The χ² quantile of the triangle gate: 3 vertices (6 coordinates).
+GATE_6 = float(chdtri(6, GATE_P))
 #: Hypotheses (most inliers first) refitted on their inliers and recounted.
 REFINE = 32
 #: Log-likelihood margin under which two landmark assignments are
 #: indistinguishable (a likelihood ratio below 1,000): triangles on such
-#: contested landmarks are not declared, though the landmarks are still fused. At unit density
-#: and 30 dB about 4 % of landmarks have another within 5σ; at a ratio of
+#: contested landmarks are not declared, though the landmarks are still
+#: fused. At unit density and 30 dB about 4 % of landmarks have another within 5σ; at a ratio of
 #: 100, one wrong pick per 1,000 trials of 75 common landmarks still made a
 #: false triangle (a q-only landmark 3.5σ from a common one, noise put it
 #: nearer: the runner-up assignment was 160 times less likely).
