@@ -203,6 +203,16 @@ def _hough_pool(cp, cq, scores, sigma):
     return idx[np.argsort(-scores[idx], kind="stable")][:MAX_POOL]
 
 
+def inside_hull(hull: ConvexHull, x: np.ndarray) -> np.ndarray:
+    """Which points x (m, 2) lie inside a 2-D convex hull (boundary included)."""
+    return np.all(x @ hull.equations[:, :2].T + hull.equations[:, 2] <= 0, axis=1)
+
+
+def _own_covariances(cov, n: int, sigma: float) -> np.ndarray:
+    """The landmarks' covariances, σ² I when none are given."""
+    return np.broadcast_to(sigma**2 * np.eye(2), (n, 2, 2)) if cov is None else cov
+
+
 def posterior_association(P, x, cov_p, cov_x, log_prior: float):
     """The maximum-posterior one-to-one association of P and mapped q landmarks x.
 
@@ -291,11 +301,10 @@ def associate(P, Q, alignment, sigma, cov_p=None, cov_q=None):
     """
     x = (Q - alignment.t) @ rotation(alignment.theta)
     cov_x = mapped_covariance(x, alignment.theta, alignment.cov, sigma**2 if cov_q is None else cov_q)
-    if cov_p is None:
-        cov_p = np.broadcast_to(sigma**2 * np.eye(2), (len(P), 2, 2))
+    cov_p = _own_covariances(cov_p, len(P), sigma)
     log_density = np.log(len(Q) / ConvexHull(Q).volume)
     hull = ConvexHull(P)
-    n_inside = max(int(np.sum(np.all(x @ hull.equations[:, :2].T + hull.equations[:, 2] <= 0, axis=1))), 1)
+    n_inside = max(int(np.sum(inside_hull(hull, x))), 1)
     shared = SHARED_PRIOR
     for _ in range(PRIOR_ROUNDS):
         pairs, margin = posterior_association(P, x, cov_p, cov_x, np.log(shared / (1 - shared)) - log_density)
@@ -317,13 +326,12 @@ def match_nfa(P, Q, alignment, pairs, n_hypotheses: int, sigma: float, cov_p=Non
     ``n_hypotheses · C(N, k - 3) · α(d²_(k))^(k-3)`` over k. A match with
     NFA <= ``MATCH_NFA`` is expected to arise by chance at most that often.
     """
-    if cov_p is None:
-        cov_p = np.broadcast_to(sigma**2 * np.eye(2), (len(P), 2, 2))
+    cov_p = _own_covariances(cov_p, len(P), sigma)
     x = (Q - alignment.t) @ rotation(alignment.theta)
     cov_x = mapped_covariance(x, alignment.theta, alignment.cov, sigma**2 if cov_q is None else cov_q)
     cov = cov_x + np.median(np.trace(cov_p, axis1=1, axis2=2) / 2) * np.eye(2)  # a typical p landmark
     hull = ConvexHull(P)
-    inside = np.all(x @ hull.equations[:, :2].T + hull.equations[:, 2] <= 0, axis=1)
+    inside = inside_hull(hull, x)
     density = P.shape[0] / hull.volume  # a 2-D hull's "volume" is its area
     unit_area = density * np.pi * np.sqrt(np.linalg.det(cov[inside | np.isin(np.arange(len(Q)), pairs[:, 1])])).mean()
     e = P[pairs[:, 0]] - x[pairs[:, 1]]
@@ -448,18 +456,13 @@ def consensus_merge(P, Q, sigma, match: TriangleMatch, log_tau, cov_p=None, cov_
         sel = match.trial == b
         passing = sel & (match.log_lr >= log_tau[b])
         vp, vq, scores = match.p_vertices[passing], match.q_vertices[passing], match.log_lr[passing]
-        pairs, contested, n_conflicts = consensus_pairs(
-            P[b], Q[b], float(sigma[b]), vp, vq, scores,
-            None if cov_p is None else cov_p[b], None if cov_q is None else cov_q[b])
+        cp, cq = (None, None) if cov_p is None else (cov_p[b], cov_q[b])
+        pairs, contested, n_conflicts = consensus_pairs(P[b], Q[b], float(sigma[b]), vp, vq, scores, cp, cq)
         if len(pairs) == 0 and fallback is not None:
-            pairs, contested, _ = fallback(P[b], Q[b], float(sigma[b]), None if cov_p is None else cov_p[b],
-                                           None if cov_q is None else cov_q[b])
+            pairs, contested, _ = fallback(P[b], Q[b], float(sigma[b]), cp, cq)
         tri_p, tri_q = match.tri_p[b].vertices, match.tri_q[b].vertices
         lp_pairs, lp_scores = match.triangle_pairs[sel], match.log_lr[sel]
-        if len(pairs):
-            tri_pairs, tri_scores = declared_triangles(tri_p, tri_q, pairs[~contested], P[b], Q[b], float(sigma[b]))
-        else:
-            tri_pairs, tri_scores = np.empty((0, 2), dtype=np.intp), np.empty(0)
+        tri_pairs, tri_scores = declared_triangles(tri_p, tri_q, pairs[~contested], P[b], Q[b], float(sigma[b]))
         rest = ~np.isin(lp_pairs @ [len(tri_q), 1], tri_pairs @ [len(tri_q), 1])
         parts.append((np.concatenate([tri_pairs, lp_pairs[rest]]).astype(np.intp),
                       np.concatenate([tri_scores, lp_scores[rest]]),

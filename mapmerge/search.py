@@ -40,7 +40,7 @@ from scipy.spatial import ConvexHull, cKDTree
 from scipy.stats import binom
 
 from .alignment import align_pairs, rotation
-from .consensus import associate, declared_triangles
+from .consensus import associate, declared_triangles, inside_hull
 from .result import MergeBatch, build_from_parts
 from .triangles import TriangleBatch
 
@@ -149,7 +149,7 @@ def _log_nfa(P, Q, theta, t, r, n_hypotheses: int) -> float:
     """log NFA of a transform: the a contrario count test (module docstring, step 4)."""
     hull = ConvexHull(P)
     x = (Q - t) @ rotation(theta)
-    inside = np.all(x @ hull.equations[:, :2].T + hull.equations[:, 2] <= 1e-12, axis=1)
+    inside = inside_hull(hull, x)
     n = int(inside.sum())
     if n == 0:
         return np.inf
@@ -213,11 +213,8 @@ def search_merge(P, Q, sigma, tri_p: TriangleBatch, tri_q: TriangleBatch, cov_p=
     for b in range(len(P)):
         pairs, contested, _ = search_pairs(P[b], Q[b], float(sigma[b]), None if cov_p is None else cov_p[b],
                                            None if cov_q is None else cov_q[b])
-        if len(pairs):
-            tri_pairs, scores = declared_triangles(tri_p[b].vertices, tri_q[b].vertices, pairs[~contested],
-                                                   P[b], Q[b], float(sigma[b]))
-        else:
-            tri_pairs, scores = np.empty((0, 2), dtype=np.intp), np.empty(0)
+        tri_pairs, scores = declared_triangles(tri_p[b].vertices, tri_q[b].vertices, pairs[~contested],
+                                               P[b], Q[b], float(sigma[b]))
         parts.append((tri_pairs, scores, np.ones(len(tri_pairs), bool), pairs, 0))
     return build_from_parts(method="search", P=P, Q=Q, sigma=sigma, log_tau=np.full(len(P), np.nan),
                             tri_p=tri_p, tri_q=tri_q, parts=parts)
