@@ -28,15 +28,21 @@ import pandas as pd
 
 from mapmerge import metrics
 
-CELL = ["kind", "cut", "source", "n_landmarks", "overlap", "snr_db", "aspect", "unrelated",
-        "method", "objective", "use_cov"]
+from .trials import LATER_KEYS
+
+CELL = ["kind", "cut", "source", "n_landmarks", "overlap", "snr_db", "aspect", "unrelated", "layout", "p_detect",
+        "clutter", "anisotropy", "method", "objective", "use_cov"]
 #: P_FA values at which stored ROC curves are sampled (the full curve gives AUC).
 PFA_GRID = np.unique(np.r_[0.0, np.logspace(-5, 0, 151), np.linspace(0, 1, 201)])
 
 
+#: Columns added after the first release, with the value runs written before them had.
+LATER_COLUMNS = {"use_cov": False, **LATER_KEYS}
+
+
 def _with_defaults(trials: pd.DataFrame) -> pd.DataFrame:
-    """Runs written before ``matcher.use_cov`` existed did not use covariances."""
-    return trials if "use_cov" in trials else trials.assign(use_cov=False)
+    """Runs written before a column existed ran at its first-release value."""
+    return trials.assign(**{k: v for k, v in LATER_COLUMNS.items() if k not in trials})
 
 
 def find_runs(dirs) -> list[Path]:

@@ -36,6 +36,14 @@ class ScenarioConfig:
     aspect: float = 1.0
     # Map q shares no landmark with map p (false-merge rates).
     unrelated: bool = False
+    # "strip" (the paper's: unshared landmarks only outside the overlap) or
+    # "interleaved" (each agent detects an overlap landmark with p_detect).
+    layout: str = "strip"
+    p_detect: float = 0.9
+    # Spurious landmarks per map, as a fraction of n_landmarks.
+    clutter: float = 0.0
+    # Range-bearing-like noise: growth of the cross-range deviation away from the path (0: isotropic).
+    anisotropy: float = 0.0
     # Victoria Park: pose index where agent q takes over, and how agents map.
     cut: int = 3483
     source: str = "reference"
@@ -111,6 +119,7 @@ def validate(cfg) -> None:
     from mapmerge.datasets import SOURCES
     from mapmerge.matching import OBJECTIVES, resolve_log_tau
     from mapmerge.merging import METHODS
+    from mapmerge.simulate import LAYOUTS
 
     s, m, mc = cfg.scenario, cfg.matcher, cfg.mc
     if s.kind not in KINDS:
@@ -134,6 +143,14 @@ def validate(cfg) -> None:
         _fail("scenario.snr_db", s.snr_db, "must be a finite number of dB")
     if not (math.isfinite(s.aspect) and s.aspect > 0):
         _fail("scenario.aspect", s.aspect, "must be a positive number")
+    if s.layout not in LAYOUTS:
+        _fail("scenario.layout", s.layout, f"must be one of {list(LAYOUTS)}")
+    if not (0.0 < s.p_detect <= 1.0):
+        _fail("scenario.p_detect", s.p_detect, "must be a probability in (0, 1]")
+    if not (math.isfinite(s.clutter) and s.clutter >= 0):
+        _fail("scenario.clutter", s.clutter, "must be >= 0 (spurious landmarks per true landmark)")
+    if not (math.isfinite(s.anisotropy) and s.anisotropy >= 0):
+        _fail("scenario.anisotropy", s.anisotropy, "must be >= 0 (0 is isotropic noise)")
     if m.method not in METHODS:
         _fail("matcher.method", m.method, f"must be one of {list(METHODS)}")
     if m.method == "astroalign" and importlib.util.find_spec("astroalign") is None:

@@ -30,7 +30,12 @@ from mapmerge.datasets import victoria_park
 from mapmerge.merging import get_method, match_stage, merge_at
 from mapmerge.simulate import ScenarioBatch, check_scenario
 
-SCENARIO_KEYS = ("n_landmarks", "overlap", "snr_db", "aspect", "unrelated")
+SCENARIO_KEYS = ("n_landmarks", "overlap", "snr_db", "aspect", "unrelated", "layout", "p_detect", "clutter",
+                 "anisotropy")
+#: Scenario keys added after the first release, with the value that gives
+#: the first release's maps: left out of the cell key at that value, so
+#: existing cells keep their seeds.
+LATER_KEYS = {"layout": "strip", "p_detect": 0.9, "clutter": 0.0, "anisotropy": 0.0}
 #: Keys of a real-data scenario (``kind: victoria_park``).
 DATASET_KEYS = ("cut", "source")
 
@@ -63,8 +68,10 @@ def scientific_keys(scenario: dict) -> tuple[str, ...]:
 
 def cell_key(scenario: dict) -> int:
     """Stable 63-bit key of a scenario's scientific parameters."""
-    canon = json.dumps({k: scenario[k] if isinstance(scenario[k], str) else float(scenario[k])
-                        for k in scientific_keys(scenario)}, sort_keys=True)
+    scenario = {**LATER_KEYS, **scenario}
+    keys = [k for k in scientific_keys(scenario) if k not in LATER_KEYS or scenario[k] != LATER_KEYS[k]]
+    canon = json.dumps({k: scenario[k] if isinstance(scenario[k], str) else float(scenario[k]) for k in keys},
+                       sort_keys=True)
     return int.from_bytes(hashlib.sha256(canon.encode()).digest()[:8], "big") >> 1
 
 
@@ -84,11 +91,14 @@ def make_trials(root_seed: int, scenario: dict, ks):
         sc = _victoria_park(int(scenario["cut"]), str(scenario["source"]))
         batch = ScenarioBatch(sc.p[None], sc.q[None], sc.ids_p[None], sc.ids_q[None], sc.truth[None],
                               np.array([sc.sigma]), np.array([sc.theta]), sc.t[None], np.nan, np.array([np.nan]),
-                              np.array([sc.n_common]))
+                              np.array([sc.n_common]), sc.cov_p[None], sc.cov_q[None], np.nan, np.nan)
         return batch, sc
+    scenario = {**LATER_KEYS, **scenario}
     batch = mm.simulate.make_pairs(int(scenario["n_landmarks"]), float(scenario["overlap"]),
                                    float(scenario["snr_db"]), trial_seeds(root_seed, scenario, ks),
-                                   float(scenario["aspect"]), bool(scenario["unrelated"]))
+                                   float(scenario["aspect"]), bool(scenario["unrelated"]), str(scenario["layout"]),
+                                   float(scenario["p_detect"]), float(scenario["clutter"]),
+                                   float(scenario["anisotropy"]))
     return batch, None
 
 
@@ -103,6 +113,7 @@ def _slice_size(scenario: dict) -> int:
     if is_dataset(scenario):
         return 1
     n, _ = check_scenario(scenario["n_landmarks"], scenario["overlap"], scenario["snr_db"], scenario["aspect"])
+    n += int(np.ceil(n * float(scenario.get("clutter", 0.0))))
     # At most 2n - 5 triangles per map; trials are independent, so slicing
     # changes nothing but memory.
     return max(1, MAX_PAIRS // max(2 * n - 5, 1) ** 2)
@@ -129,11 +140,8 @@ def _run_slice(root_seed: int, scenario: dict, matcher: dict, ks: np.ndarray):
     B = len(sc)
     method = get_method(matcher["method"])
     taus = list(matcher["taus"]) if method.uses_tau else ["none"]
-    covariances, first_pose = {}, None
-    if dataset is not None:
-        first_pose = (dataset.theta_first_pose, dataset.t_first_pose[None])
-        if matcher.get("use_cov"):
-            covariances = {"cov_p": dataset.cov_p[None], "cov_q": dataset.cov_q[None]}
+    covariances = {"cov_p": sc.cov_p, "cov_q": sc.cov_q} if matcher.get("use_cov") else {}
+    first_pose = None if dataset is None else (dataset.theta_first_pose, dataset.t_first_pose[None])
 
     clock = time.perf_counter()
     match = match_stage(sc.p, sc.q, sc.sigma, method.name, matcher.get("objective", "lr"), _loosest_tau(taus))

@@ -1,24 +1,42 @@
 """Synthetic pairs of overlapping landmark maps with ground truth.
 
 Two robots explore neighbouring rectangles of a world with landmarks at unit
-density. Map p covers ``[0, w] x [0, h]``; map q covers the same-size
-rectangle shifted right so that the shared strip holds ``c = round(overlap·n)``
-of each map's ``n`` landmarks. Exactly ``c`` landmarks are drawn uniformly in
-the strip and ``n - c`` in each map's own part, so every trial has the stated
-overlap. Map q's frame is the world seen through a uniform random rotation
-and a random translation, ``q = R(θ) x + t``; both maps then get independent
-N(0, σ²) noise per coordinate, with σ set from the SNR:
+density (counting the landmarks either map holds). Map q's rectangle is map
+p's shifted right, so that the two share an overlap window holding
+``c = round(overlap·n)`` common landmarks of each map's ``n``. Two layouts:
+
+- ``strip`` (the paper's): the overlap holds only the c common landmarks;
+  each map's ``n - c`` unshared ones lie in its own part.
+- ``interleaved``: each agent detects a landmark of the overlap with
+  probability ``p_detect``, so unshared landmarks lie among the common ones.
+  Each map holds ``u = round(c (1 - p_detect) / p_detect)`` unshared
+  landmarks in the overlap (the expected count given c detected by both)
+  and the rest in its own part; fixing the counts keeps every trial's map
+  size and overlap as stated.
+
+``clutter`` adds ``round(clutter·n)`` spurious landmarks per map, uniform
+over its window (a Poisson process given its count), seen by one map only.
+Map q's frame is the world seen through a uniform random rotation and a
+random translation, ``q = R(θ) x + t``; both maps then get independent
+zero-mean Gaussian noise with σ set from the SNR:
 
     SNR_dB = 10 log10(σ̄² / (2σ²)),
 
-σ̄² the sample variance of the edge lengths of the Delaunay graph of all true
-landmarks. Row order of each map is shuffled so indices carry no truth.
+σ̄² the sample variance of the edge lengths of the Delaunay graph of the true
+landmarks (clutter excluded). With ``anisotropy = 0`` the noise is N(0, σ²)
+per coordinate; otherwise it is range-bearing-like: each agent drives along
+its window's midline, and a landmark's cross-range standard deviation grows
+with its distance from that path (see ``_relative_sd``), scaled so that σ²
+stays the map's mean per-coordinate variance. Each map's per-landmark
+covariances are returned in its own frame. Row order of each map is
+shuffled so indices carry no truth.
 
 ``make_pairs`` draws many trials, each from its own seed; ``make_pair`` is
 its single case, so the order of the random draws lives in one place: per
-trial, the uniforms of the landmark blocks (x then y of the common strip,
-p's own part, q's own part[, q's unrelated strip]), two permutations, θ,
-t, and the two maps' normal noise.
+trial, the uniforms of the landmark blocks (x then y of each block in world
+row order: common, then p's unshared, q's unshared[, q's unrelated common
+ones], p's clutter, q's clutter), two permutations, θ, t, and the two maps'
+normal noise.
 """
 
 from __future__ import annotations
@@ -30,10 +48,14 @@ import numpy as np
 
 from scipy.spatial import Delaunay
 
-from .alignment import rotate
+from .alignment import covariance_in_p_frame, rotate
 
-#: Width / height of each map's rectangle.
+#: Width / height of each map's rectangle (strip layout).
 DEFAULT_ASPECT = 1.0
+#: Where unshared landmarks lie (see the module docstring).
+LAYOUTS = ("strip", "interleaved")
+#: Interleaved layout: probability that an agent detects a landmark of the overlap.
+DEFAULT_P_DETECT = 0.9
 
 
 @dataclass(frozen=True)
@@ -42,9 +64,9 @@ class Scenario:
 
     Attributes
     ----------
-    p, q : (n, 2) ndarray
-        Noisy landmark maps, each in its own frame.
-    ids_p, ids_q : (n,) int ndarray
+    p, q : (m, 2) ndarray
+        Noisy landmark maps, each in its own frame (m = n + clutter rows).
+    ids_p, ids_q : (m,) int ndarray
         True landmark id of each row; equal ids are the same landmark.
     truth : (L, 2) ndarray
         True position of landmark id k in map p's (world) frame.
@@ -57,6 +79,13 @@ class Scenario:
     snr_db : float
     sigma_bar2 : float
         Sample variance of the true Delaunay edge lengths.
+    cov_p, cov_q : (m, 2, 2) ndarray
+        Each row's noise covariance in its map's frame.
+    density : float
+        Landmarks per unit area of each map.
+    p_shared : float
+        Fraction of q's rows inside the overlap that are common: with
+        ``density`` the prior of an association that knows the layout.
     """
 
     p: np.ndarray
@@ -69,6 +98,10 @@ class Scenario:
     t: np.ndarray
     snr_db: float
     sigma_bar2: float
+    cov_p: np.ndarray
+    cov_q: np.ndarray
+    density: float
+    p_shared: float
 
     @functools.cached_property
     def n_common(self) -> int:
@@ -129,7 +162,8 @@ class ScenarioBatch:
     """B synthetic map pairs of one scenario, stacked along a leading axis.
 
     The attributes are those of ``Scenario`` with a batch axis in front
-    (``snr_db`` is shared); ``batch[k]`` is trial k's ``Scenario``.
+    (``snr_db``, ``density`` and ``p_shared`` are shared) plus ``n_common``;
+    ``batch[k]`` is trial k's ``Scenario``.
     """
 
     p: np.ndarray
@@ -143,18 +177,26 @@ class ScenarioBatch:
     snr_db: float
     sigma_bar2: np.ndarray
     n_common: np.ndarray
+    cov_p: np.ndarray
+    cov_q: np.ndarray
+    density: float
+    p_shared: float
 
     def __len__(self) -> int:
         return len(self.p)
 
     def take(self, trials: np.ndarray) -> "ScenarioBatch":
         """The trials ``trials`` as a batch of their own."""
-        return ScenarioBatch(*(getattr(self, f.name) if f.name == "snr_db" else getattr(self, f.name)[trials]
+        return ScenarioBatch(*(getattr(self, f.name) if f.name in _SHARED else getattr(self, f.name)[trials]
                                for f in fields(self)))
 
     def __getitem__(self, k: int) -> Scenario:
         return Scenario(self.p[k], self.q[k], self.ids_p[k], self.ids_q[k], self.truth[k], float(self.sigma[k]),
-                        float(self.theta[k]), self.t[k], self.snr_db, float(self.sigma_bar2[k]))
+                        float(self.theta[k]), self.t[k], self.snr_db, float(self.sigma_bar2[k]), self.cov_p[k],
+                        self.cov_q[k], self.density, self.p_shared)
+
+
+_SHARED = ("snr_db", "density", "p_shared")
 
 
 def make_pair(
@@ -164,13 +206,17 @@ def make_pair(
     rng=None,
     aspect: float = DEFAULT_ASPECT,
     unrelated: bool = False,
+    layout: str = "strip",
+    p_detect: float = DEFAULT_P_DETECT,
+    clutter: float = 0.0,
+    anisotropy: float = 0.0,
 ) -> Scenario:
     """Draw one overlapping map pair: ``make_pairs`` with a single seed.
 
     Parameters
     ----------
     n_landmarks : int, default 100
-        Landmarks per map, >= 3.
+        True landmarks per map, >= 3.
     overlap : float, default 0.75
         Fraction of each map's landmarks that are common, in (0, 1];
         ``round(overlap·n)`` landmarks are shared (at least 3).
@@ -179,11 +225,22 @@ def make_pair(
     rng : None, int, SeedSequence or Generator
         Randomness, normalised with ``np.random.default_rng``.
     aspect : float, default 1
-        Width / height of each map's rectangle, > 0.
+        Width / height of each map's rectangle in the strip layout, > 0.
     unrelated : bool, default False
-        Draw map q's landmarks of the overlap strip independently of map p's,
-        so the maps share no landmark (for false-merge rates); everything
-        else, σ included, is as in the related scenario.
+        Draw map q's common landmarks independently of map p's, so the maps
+        share no landmark (for false-merge rates); everything else, σ
+        included, is as in the related scenario.
+    layout : {"strip", "interleaved"}, default "strip"
+        Where unshared landmarks lie: only outside the overlap (the paper's
+        setting) or also among the common ones (see the module docstring).
+    p_detect : float, default 0.9
+        Interleaved layout: probability that an agent detects a landmark of
+        the overlap, in (0, 1].
+    clutter : float, default 0
+        Spurious landmarks per map as a fraction of ``n_landmarks``, >= 0.
+    anisotropy : float, default 0
+        Growth of the cross-range standard deviation with distance from the
+        agent's path, >= 0; 0 is isotropic noise.
 
     Returns
     -------
@@ -194,11 +251,13 @@ def make_pair(
     ValueError
         On out-of-range arguments.
     """
-    return make_pairs(n_landmarks, overlap, snr_db, [rng], aspect, unrelated)[0]
+    return make_pairs(n_landmarks, overlap, snr_db, [rng], aspect, unrelated, layout, p_detect, clutter,
+                      anisotropy)[0]
 
 
 def make_pairs(n_landmarks: int, overlap: float, snr_db: float, seeds, aspect: float = DEFAULT_ASPECT,
-               unrelated: bool = False) -> ScenarioBatch:
+               unrelated: bool = False, layout: str = "strip", p_detect: float = DEFAULT_P_DETECT,
+               clutter: float = 0.0, anisotropy: float = 0.0) -> ScenarioBatch:
     """Draw one map pair per seed (see ``make_pair`` for the arguments).
 
     Parameters
@@ -212,45 +271,106 @@ def make_pairs(n_landmarks: int, overlap: float, snr_db: float, seeds, aspect: f
     -------
     ScenarioBatch
     """
-    n, c = check_scenario(n_landmarks, overlap, snr_db, aspect)
-    B = len(seeds)
-    height = np.sqrt(n / aspect)
-    width = aspect * height
-    u = np.empty((B, 2 * c + 4 * (n - c) + (2 * c if unrelated else 0)))
-    perm_p, perm_q = np.empty((B, n), np.intp), np.empty((B, n), np.intp)
-    u3, z = np.empty((B, 3)), np.empty((B, 2, n, 2))
+    n, c = check_scenario(n_landmarks, overlap, snr_db, aspect, layout, p_detect, clutter, anisotropy)
+    g = _geometry(n, c, aspect, layout, p_detect, clutter)
+    B, m = len(seeds), n + g.k
+    blocks = g.blocks + ([g.blocks[0]] if unrelated else []) + g.clutter
+    u = np.empty((B, 2 * sum(count for count, _, _ in blocks)))
+    perm_p, perm_q = np.empty((B, m), np.intp), np.empty((B, m), np.intp)
+    u3, z = np.empty((B, 3)), np.empty((B, 2, m, 2))
     for k, seed in enumerate(seeds):
         rng = np.random.default_rng(seed)
         # One call per run of draws: ``uniform(a, b)`` is ``a + (b - a)·random``
         # and ``normal(0, σ)`` is ``σ·standard_normal``, so scaling afterwards
         # gives the same bits as drawing block by block.
         rng.random(out=u[k])
-        perm_p[k] = rng.permutation(n)
-        perm_q[k] = rng.permutation(n)
+        perm_p[k] = rng.permutation(m)
+        perm_q[k] = rng.permutation(m)
         rng.random(out=u3[k])
         rng.standard_normal(out=z[k].reshape(-1))
-    world = _world(n, c, width, height, unrelated, u)
-    # σ comes from the related world, also for unrelated pairs.
+    world = _world(blocks, g.height, u)
+    # σ comes from the related world (the true landmarks of either map), also for unrelated pairs.
     sigma, sigma_bar2 = sigmas_from_snr(world[:, : 2 * n - c], float(snr_db))
-    # p's ids are 0..n-1 before shuffling; q's common ids are p's (or fresh ones when unrelated).
-    base_q = np.concatenate([(2 * n - c if unrelated else 0) + np.arange(c), n + np.arange(n - c)])
-    ids_p, ids_q = perm_p, base_q[perm_q]
+    # Ids are world rows: p's landmarks are 0..n-1, q's own n..2n-c-1; q's
+    # common ones are p's (fresh rows when unrelated), then each map's clutter.
+    fresh = 2 * n - c + (c if unrelated else 0)
+    base_p = np.concatenate([np.arange(n), fresh + np.arange(g.k)])
+    base_q = np.concatenate([(2 * n - c if unrelated else 0) + np.arange(c), n + np.arange(n - c),
+                             fresh + g.k + np.arange(g.k)])
+    ids_p, ids_q = base_p[perm_p], base_q[perm_q]
     rows = np.arange(B)[:, None]
-    noise = sigma[:, None, None, None] * z
     theta = -np.pi + (np.pi - -np.pi) * u3[:, 0]
-    t = -width + (width - -width) * u3[:, 1:]
-    p = world[rows, ids_p] + noise[:, 0]
-    q = rotate(theta, world[rows, ids_q]) + t[:, None, :] + noise[:, 1]
+    t = -g.width + (g.width - -g.width) * u3[:, 1:]
+    if anisotropy == 0:
+        noise = sigma[:, None, None, None] * z
+        p = world[rows, ids_p] + noise[:, 0]
+        q = rotate(theta, world[rows, ids_q]) + t[:, None, :] + noise[:, 1]
+        cov_p = cov_q = sigma[:, None, None, None] ** 2 * np.eye(2)
+        cov_p, cov_q = (np.broadcast_to(cov_p, (B, m, 2, 2)),) * 2
+    else:
+        sd_p = sigma[:, None, None] * _relative_sd(world[rows, ids_p, 1], g.height, anisotropy)
+        sd_q = sigma[:, None, None] * _relative_sd(world[rows, ids_q, 1], g.height, anisotropy)
+        p = world[rows, ids_p] + sd_p * z[:, 0]
+        # q's noise is drawn in the world frame, where its axes are along and across the path.
+        q = rotate(theta, world[rows, ids_q] + sd_q * z[:, 1]) + t[:, None, :]
+        cov_p = sd_p[..., None] ** 2 * np.eye(2)
+        cov_q = covariance_in_p_frame(-theta, sd_q[..., None] ** 2 * np.eye(2))
     return ScenarioBatch(p, q, ids_p, ids_q, world, sigma, theta, t, float(snr_db), sigma_bar2,
-                         np.full(B, 0 if unrelated else c))
+                         np.full(B, 0 if unrelated else c), cov_p, cov_q, g.density, g.p_shared)
 
 
-def _world(n: int, c: int, width: float, height: float, unrelated: bool, u: np.ndarray) -> np.ndarray:
+@dataclass(frozen=True)
+class _Geometry:
+    """Where a scenario's landmarks lie: blocks ``(count, x0, x1)`` of uniform
+    landmarks (y in [0, height]) in world-row order, and the association prior."""
+
+    blocks: list
+    clutter: list
+    k: int
+    height: float
+    width: float
+    density: float
+    p_shared: float
+
+
+def _geometry(n: int, c: int, aspect: float, layout: str, p_detect: float, clutter: float) -> _Geometry:
+    # An overlap landmark is kept by one agent only with probability
+    # d(1 - d) and by both with d²: u of each map's landmarks in the overlap
+    # are unshared, fixed at their expected count (capped by what the map has)
+    # so that every trial has the stated map size and overlap.
+    u = min(int(np.floor(c * (1 - p_detect) / p_detect + 0.5)), n - c) if layout == "interleaved" else 0
+    height = np.sqrt(n / aspect)
+    # Unit density of the landmarks either map holds: p's window has area
+    # n + u, of which the overlap c + 2u. (With u = 0 this is the strip layout,
+    # computed exactly as it always was.)
+    width = aspect * height * ((n + u) / n)
+    shift = width - width * (c + 2 * u) / (n + u)
+    own = n - c - u
+    overlap = (shift, width)
+    blocks = [(c, *overlap), (u, *overlap), (own, 0.0, shift), (u, *overlap), (own, width, width + shift)]
+    k = int(np.floor(clutter * n + 0.5))
+    return _Geometry(blocks, [(k, 0.0, width), (k, shift, width + shift)], k, height, width,
+                     density=(n + k) / (n + u),
+                     # Of q's rows in the overlap, the common ones.
+                     p_shared=c / (c + u + k * (c + 2 * u) / (n + u)))
+
+
+def _relative_sd(y: np.ndarray, height: float, anisotropy: float) -> np.ndarray:
+    """Per-landmark noise standard deviations along x and y, in units of σ.
+
+    An agent drives along its window's midline y = height / 2 and sees a
+    landmark at distance d across it: range noise (across the path, y) stays
+    1, cross-range noise (along the path, x) is ``1 + anisotropy·d/(height/2)``
+    like a bearing error. Scaled so that the map's mean per-coordinate
+    variance is 1, i.e. σ keeps its meaning.
+    """
+    cross = 1.0 + anisotropy * np.abs(y - height / 2) / (height / 2)
+    scale = np.sqrt(np.mean((cross**2 + 1.0) / 2, axis=-1, keepdims=True))
+    return np.stack([cross, np.ones_like(cross)], axis=-1) / scale[..., None]
+
+
+def _world(blocks, height: float, u: np.ndarray) -> np.ndarray:
     """True landmarks (B, L, 2) from the uniforms; row = landmark id."""
-    shift = width - width * c / n
-    blocks = [(c, shift, width), (n - c, 0.0, shift), (n - c, width, width + shift)]
-    if unrelated:
-        blocks.append((c, shift, width))
     lo, span, col_x, col_y, at = [], [], [], [], 0
     for k, x0, x1 in blocks:  # k uniforms for x in [x0, x1], then k for y in [0, height]
         lo += [x0] * k + [0.0] * k
@@ -262,8 +382,9 @@ def _world(n: int, c: int, width: float, height: float, unrelated: bool, u: np.n
     return np.stack([values[:, col_x], values[:, col_y]], axis=2)
 
 
-def check_scenario(n_landmarks, overlap, snr_db, aspect) -> tuple[int, int]:
-    """Validate scenario arguments; return ``(n, c)``: landmarks per map and common landmarks."""
+def check_scenario(n_landmarks, overlap, snr_db, aspect, layout="strip", p_detect=DEFAULT_P_DETECT, clutter=0.0,
+                   anisotropy=0.0) -> tuple[int, int]:
+    """Validate scenario arguments; return ``(n, c)``: true and common landmarks per map."""
     if isinstance(n_landmarks, bool) or int(n_landmarks) != n_landmarks or n_landmarks < 3:
         raise ValueError(f"n_landmarks must be an integer >= 3, got {n_landmarks!r}")
     if not (np.isfinite(overlap) and 0.0 < overlap <= 1.0):
@@ -272,6 +393,14 @@ def check_scenario(n_landmarks, overlap, snr_db, aspect) -> tuple[int, int]:
         raise ValueError(f"snr_db must be a finite number, got {snr_db!r}")
     if not (np.isfinite(aspect) and aspect > 0):
         raise ValueError(f"aspect must be a positive number, got {aspect!r}")
+    if layout not in LAYOUTS:
+        raise ValueError(f"layout must be one of {LAYOUTS}, got {layout!r}")
+    if not (np.isfinite(p_detect) and 0.0 < p_detect <= 1.0):
+        raise ValueError(f"p_detect must be in (0, 1], got {p_detect!r}")
+    if not (np.isfinite(clutter) and clutter >= 0):
+        raise ValueError(f"clutter must be a number >= 0 (spurious landmarks per true landmark), got {clutter!r}")
+    if not (np.isfinite(anisotropy) and anisotropy >= 0):
+        raise ValueError(f"anisotropy must be a number >= 0, got {anisotropy!r}")
     n = int(n_landmarks)
     c = int(np.floor(overlap * n + 0.5))
     if c < 3:

@@ -55,3 +55,68 @@ def test_reproducible_and_seed_sensitive():
 def test_bad_arguments(kwargs, match):
     with pytest.raises(ValueError, match=match):
         mm.simulate.make_pair(**kwargs)
+
+
+def test_interleaved_layout_puts_unshared_landmarks_among_common_ones():
+    for layout, inside in (("strip", 0), ("interleaved", 5)):
+        sc = mm.simulate.make_pair(100, 0.75, 40, rng=5, layout=layout, p_detect=0.9)
+        assert sc.p.shape == sc.q.shape == (100, 2) and sc.n_common == 75
+        common = np.intersect1d(sc.ids_p, sc.ids_q)
+        only_p = np.setdiff1d(sc.ids_p, common)
+        x = sc.truth[only_p, 0]
+        # round(75 * 0.1 / 0.9) = 8 of p's unshared landmarks lie in the overlap.
+        between = np.sum((x > sc.truth[common, 0].min()) & (x < sc.truth[common, 0].max()))
+        assert between >= inside if inside else between == 0
+
+
+def test_default_layout_ignores_p_detect_and_interleaved_full_detection_is_the_strip():
+    a = mm.simulate.make_pair(50, 0.6, 25, rng=9)
+    for kwargs in ({"p_detect": 0.5}, {"layout": "interleaved", "p_detect": 1.0}):
+        b = mm.simulate.make_pair(50, 0.6, 25, rng=9, **kwargs)
+        np.testing.assert_array_equal(a.p, b.p)
+        np.testing.assert_array_equal(a.q, b.q)
+
+
+def test_clutter_rows_belong_to_one_map():
+    sc = mm.simulate.make_pair(100, 0.75, 30, rng=4, layout="interleaved", clutter=0.1)
+    assert sc.p.shape == sc.q.shape == (110, 2) and sc.cov_p.shape == (110, 2, 2)
+    assert sc.n_common == 75
+    assert len(np.unique(sc.ids_p)) == len(np.unique(sc.ids_q)) == 110
+    # p's clutter lies in p's window: within the x range of p's true landmarks' window.
+    clutter_p = sc.ids_p[sc.ids_p >= 2 * 100 - 75]
+    assert clutter_p.size == 10 and not np.isin(clutter_p, sc.ids_q).any()
+
+
+def test_anisotropic_noise_matches_its_covariances():
+    batch = mm.simulate.make_pairs(100, 0.75, 30, list(range(40)), layout="interleaved", anisotropy=3.0)
+    for sc in (batch[0], batch[1]):
+        # σ keeps its meaning: the mean per-coordinate variance of each map.
+        for cov in (sc.cov_p, sc.cov_q):
+            assert np.mean(np.trace(cov, axis1=1, axis2=2)) / 2 == pytest.approx(sc.sigma**2)
+    rows = np.arange(len(batch))[:, None]
+    rp = batch.p - batch.truth[rows, batch.ids_p]
+    rq = batch.q - (mm.alignment.rotate(batch.theta, batch.truth[rows, batch.ids_q]) + batch.t[:, None])
+    for r, cov in ((rp, batch.cov_p), (rq, batch.cov_q)):
+        # Whitened residuals are χ²₂: mean 2 over 8,000 landmarks.
+        d2 = np.einsum("...i,...ij,...j->...", r, np.linalg.inv(cov), r)
+        assert d2.mean() == pytest.approx(2.0, rel=0.05)
+        eig = np.linalg.eigvalsh(cov)
+        assert eig[..., 1].max() / eig[..., 0].min() > 9  # 4x the deviation at the window's edge
+    iso = mm.simulate.make_pair(100, 0.75, 30, rng=1)
+    np.testing.assert_allclose(iso.cov_p, np.broadcast_to(iso.sigma**2 * np.eye(2), (100, 2, 2)))
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"layout": "ring"}, "layout"),
+        ({"p_detect": 0.0}, "p_detect"),
+        ({"p_detect": 1.2}, "p_detect"),
+        ({"clutter": -0.1}, "clutter"),
+        ({"clutter": float("inf")}, "clutter"),
+        ({"anisotropy": -1.0}, "anisotropy"),
+    ],
+)
+def test_bad_layout_arguments(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        mm.simulate.make_pair(**kwargs)
