@@ -182,6 +182,17 @@ def summary_table(trials: pd.DataFrame) -> pd.DataFrame:
     t["median_rmse_over_sigma"] = (trials["rmse"] / trials["sigma"]).groupby(
         [trials[k] for k in keys]).median()
     t["mean_log_tau"] = g["log_tau"].mean()
+    # Triangles declared by the GLRT test alone (consensus also declares those its association implies).
+    t["recall_glrt"] = _ratio(t.tp - g["tp_implied"].sum(), t.common)
+    t["found_rate"] = g["transform_found"].mean()
+    t["correct_per_trial"] = g["correct_pairs"].mean()
+    t["wrong_per_trial"] = g["wrong_pairs"].mean()
+    if "oracle_correct_pairs" in trials:
+        oracle = g[["oracle_correct_pairs", "oracle_wrong_pairs"]].sum()
+        t["oracle_correct_per_trial"] = g["oracle_correct_pairs"].mean()
+        t["oracle_wrong_per_trial"] = g["oracle_wrong_pairs"].mean()
+        t["correct_vs_oracle"] = _ratio(lm.correct_pairs, oracle.oracle_correct_pairs)
+        t["wrong_vs_oracle"] = _ratio(lm.wrong_pairs, oracle.oracle_wrong_pairs)
     return t.reset_index()
 
 

@@ -3,15 +3,20 @@
     python -m experiments.compare            # presets compare (+ compare_astroalign if installed)
     python -m experiments.compare --tables   # only rebuild tables and figure from results/compare
 
-Runs the ``compare`` sweep (paper, cyclic, consensus and Groth's voting on the
-paper's Fig. 1 scenario at 10-40 dB, related and unrelated map pairs, 1,000
-trials each) and, when astroalign is installed, ``compare_astroalign``; then
-writes, per scenario, ``compare.md`` / ``compare.csv``: method x SNR with
-triangle detection (TP / common) and false positives per trial, landmark
-correspondence precision / recall, merge success rate (rotation error < 1°
-and combined-map RMSE < 2σ), false merges on unrelated pairs and the median
-time per merge; and ``success.png`` / ``.pdf``: merge success vs SNR per
-method.
+Runs the ``compare`` sweep (paper, cyclic, consensus and Groth's voting on
+the paper's Fig. 1 scenario, 100 landmarks and 75 % common, in both layouts: the paper's strip and the interleaved layout where each
+agent detects an overlap landmark with probability 0.9; 0-40 dB in 2.5 dB
+steps, related and unrelated map pairs) and, when astroalign is installed,
+``compare_astroalign``; ``compare_search`` runs the global search on the
+same trials; then writes, per scenario, ``compare.md`` /
+``compare.csv``: method x SNR with triangle detection (TP / common, and the
+part declared by the GLRT test alone) and false positives per trial,
+correct and wrong landmark pairs per trial next to the oracle association's
+(the best any matcher could do: it knows the true transform), merge success
+(rotation error < 1° and combined-map RMSE < 2σ), transform found (rotation
+< 1° and registration error <= σ), false merges on unrelated pairs and the
+median time per merge; and ``success.png`` / ``.pdf``: transform found and
+wrong pairs vs SNR per method and layout, with the oracle curve.
 """
 
 from __future__ import annotations
@@ -30,7 +35,7 @@ from .aggregate import CELL, markdown, save_table  # noqa: E402
 from .figures import STYLE, _save  # noqa: E402
 from .paper import _call  # noqa: E402
 
-KEYS = ["n_landmarks", "overlap", "snr_db", "method", "tau"]
+KEYS = ["n_landmarks", "overlap", "layout", "snr_db", "method", "tau"]
 
 
 def comparison_table(table: pd.DataFrame) -> pd.DataFrame:
@@ -39,30 +44,45 @@ def comparison_table(table: pd.DataFrame) -> pd.DataFrame:
     unrelated = table[table.unrelated.astype(bool)][KEYS + ["n_trials", "false_merge_rate"]]
     out = related.merge(unrelated, on=KEYS, how="left", suffixes=("", "_unrelated"))
     out["fp_per_trial"] = out.fp / out.n_trials
-    # astroalign returns matched points, not triangles: no triangle counts.
-    out.loc[out.method == "astroalign", ["recall_common", "fp_per_trial"]] = float("nan")
+    # astroalign and the search return matched points, not triangles: no triangle counts.
+    out.loc[out.method.isin(["astroalign", "search"]), ["recall_common", "recall_glrt", "fp_per_trial"]] = float("nan")
     out["false_merges"] = (out.false_merge_rate_unrelated * out.n_trials_unrelated).round()
-    cols = KEYS + ["n_trials", "recall_common", "fp_per_trial", "landmark_precision",
-                   "landmark_recall", "success_rate", "false_merges", "n_trials_unrelated",
+    cols = KEYS + ["n_trials", "recall_common", "recall_glrt", "fp_per_trial", "correct_per_trial",
+                   "wrong_per_trial", "oracle_correct_per_trial", "oracle_wrong_per_trial", "landmark_precision",
+                   "landmark_recall", "success_rate", "found_rate", "false_merges", "n_trials_unrelated",
                    "median_ms_per_merge"]
-    return out[cols].sort_values(["n_landmarks", "overlap", "method", "tau", "snr_db"])
+    return out[[c for c in cols if c in out]].sort_values(["n_landmarks", "overlap", "layout", "method", "tau",
+                                                           "snr_db"])
 
 
 def success_figure(comp: pd.DataFrame, out: Path) -> list[Path]:
-    """Merge success rate vs SNR, one line per method and τ rule."""
+    """Transform found and wrong pairs per trial vs SNR, one column per layout, one line per method and τ rule."""
+    layouts = sorted(comp.layout.unique(), key=lambda s: s != "strip")
     with plt.rc_context(STYLE):
-        fig, ax = plt.subplots(figsize=(4.2, 3.2))
-        for (method, tau), g in comp.groupby(["method", "tau"], sort=True):
-            label = method if tau == "none" else f"{method}, τ {tau}"
-            ax.plot(g.snr_db, g.success_rate, marker="o", ms=3,
-                    ls="--" if tau == "oracle" else "-", label=label)
-        ax.set_xlabel("SNR (dB)")
-        ax.set_ylabel("merge success rate")
-        ax.set_ylim(-0.02, 1.02)
-        ax.grid(alpha=0.3, lw=0.4)
-        ax.legend(frameon=False, fontsize=6)
-        n, ov = comp.n_landmarks.iloc[0], comp.overlap.iloc[0]
-        ax.set_title(f"{n} landmarks per map, {ov:.0%} common")
+        fig, axes = plt.subplots(2, len(layouts), figsize=(3.6 * len(layouts), 5.4), sharex=True, squeeze=False)
+        for col, layout in enumerate(layouts):
+            part = comp[comp.layout == layout]
+            top, bottom = axes[0, col], axes[1, col]
+            for (method, tau), g in part.groupby(["method", "tau"], sort=True):
+                label = method if tau == "none" else f"{method}, τ {tau}"
+                ls = "--" if tau == "oracle" else "-"
+                top.plot(g.snr_db, g.found_rate, marker="o", ms=2.5, ls=ls, label=label)
+                bottom.plot(g.snr_db, g.wrong_per_trial, marker="o", ms=2.5, ls=ls, label=label)
+            if "oracle_wrong_per_trial" in part:
+                # Same trials for every method: the oracle's curve is one.
+                limit = part.groupby("snr_db").oracle_wrong_per_trial.first()
+                bottom.plot(limit.index, limit.to_numpy(), color="k", lw=1.4, ls=":",
+                            label="oracle association (true transform)")
+            n, ov = part.n_landmarks.iloc[0], part.overlap.iloc[0]
+            top.set_title(f"{layout} layout: {n} landmarks per map, {ov:.0%} common")
+            top.set_ylabel("transform found")
+            top.set_ylim(-0.02, 1.02)
+            bottom.set_ylabel("wrong landmark pairs per trial")
+            bottom.set_yscale("symlog", linthresh=0.1)
+            bottom.set_xlabel("SNR (dB)")
+            for ax in (top, bottom):
+                ax.grid(alpha=0.3, lw=0.4)
+        axes[1, -1].legend(frameon=False, fontsize=5.5)
         fig.tight_layout()
         return _save(fig, out, "success")
 
@@ -78,19 +98,23 @@ def write_tables(out: Path) -> list[Path]:
 
 
 #: Methods in the order the summary lists them: the paper, its variants, the baselines.
-METHOD_ORDER = ["paper", "cyclic", "consensus", "groth", "astroalign"]
+METHOD_ORDER = ["paper", "cyclic", "consensus", "search", "groth", "astroalign"]
 
 
 def summary(comp: pd.DataFrame, path: Path) -> Path:
-    """The README's table: 20-40 dB, methods in ``METHOD_ORDER``, plain column names."""
-    s = comp[comp.snr_db >= 20].copy()
+    """The README's table: 10-40 dB in 10 dB steps, usable τ rules, methods in ``METHOD_ORDER``, plain names."""
+    # The oracle τ rule (a limit of the paper's LP, not a usable threshold) stays in compare.md.
+    s = comp[comp.snr_db.isin([10, 20, 30, 40]) & (comp.tau != "oracle")].copy()
     s["order"] = s.method.map({m: k for k, m in enumerate(METHOD_ORDER)})
-    s = s.sort_values(["order", "tau", "snr_db"])
-    names = {"method": "method", "tau": "tau", "snr_db": "SNR", "recall_common": "triangle recall",
-             "fp_per_trial": "triangle FP / trial", "landmark_precision": "landmark precision",
-             "landmark_recall": "landmark recall", "success_rate": "merge success",
-             "false_merges": "false merges / 1,000 unrelated", "median_ms_per_merge": "ms per merge"}
-    s = s[list(names)].rename(columns=names)
+    s = s.sort_values(["layout", "order", "tau", "snr_db"], key=lambda c: c != "strip" if c.name == "layout" else c)
+    names = {"layout": "layout", "method": "method", "tau": "tau", "snr_db": "SNR",
+             "recall_common": "triangle recall", "fp_per_trial": "triangle FP / trial",
+             "correct_per_trial": "correct pairs / trial", "oracle_correct_per_trial": "oracle correct",
+             "wrong_per_trial": "wrong pairs / trial", "oracle_wrong_per_trial": "oracle wrong",
+             "success_rate": "merge success", "found_rate": "transform found",
+             "false_merges": "false merges", "n_trials_unrelated": "unrelated pairs",
+             "median_ms_per_merge": "ms per merge"}
+    s = s[[c for c in names if c in s]].rename(columns=names)
     s["SNR"] = s["SNR"].astype(int)
     path.write_text(markdown(s))
     return path
@@ -104,7 +128,7 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     out = Path(args.out)
     if not args.tables:
-        presets = ["compare"]
+        presets = ["compare", "compare_search"]
         if importlib.util.find_spec("astroalign") is not None:
             presets.append("compare_astroalign")
         for preset in presets:

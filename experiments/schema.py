@@ -55,8 +55,11 @@ class MatcherConfig:
     objective: str = "lr"
     # τ rules compared on the same trials: "oracle", "chi2:P" or a log-LR.
     taus: list[str] = field(default_factory=lambda: ["oracle", "chi2:0.01", "chi2:0.001"])
-    # Real data: pass the maps' per-landmark covariances (consensus gates, fusion of every method).
+    # Pass the maps' per-landmark covariances (consensus's association and acceptance, fusion of every method).
     use_cov: bool = False
+    # Also run the oracle association (true transform, true noise model) on
+    # every synthetic trial: oracle_correct_pairs / oracle_wrong_pairs columns.
+    oracle: bool = False
 
 
 @dataclass

@@ -142,6 +142,7 @@ def _run_slice(root_seed: int, scenario: dict, matcher: dict, ks: np.ndarray):
     taus = list(matcher["taus"]) if method.uses_tau else ["none"]
     covariances = {"cov_p": sc.cov_p, "cov_q": sc.cov_q} if matcher.get("use_cov") else {}
     first_pose = None if dataset is None else (dataset.theta_first_pose, dataset.t_first_pose[None])
+    oracle = metrics.oracle_pairs_batch(sc) if matcher.get("oracle") and dataset is None else {}
 
     clock = time.perf_counter()
     match = match_stage(sc.p, sc.q, sc.sigma, method.name, matcher.get("objective", "lr"), _loosest_tau(taus))
@@ -173,7 +174,7 @@ def _run_slice(root_seed: int, scenario: dict, matcher: dict, ks: np.ndarray):
         last = declared, row
         columns.append({"trial": ks, "tau": np.full(B, rule, dtype=object), "log_tau": log_tau,
                         "sigma": sc.sigma, "n_p": np.full(B, sc.p.shape[1]), "n_q": np.full(B, sc.q.shape[1]),
-                        "n_common_landmarks": sc.n_common, **row,
+                        "n_common_landmarks": sc.n_common, **row, **oracle,
                         "time_match_s": np.full(B, time_match),
                         "time_merge_s": np.full(B, (time.perf_counter() - clock) / B)})
     # Trial-major, rule-minor rows.
@@ -200,7 +201,11 @@ def _evaluate(sc, match, log_tau, method, covariances, n_common, lp_true, lp_con
         is_true, consistent = lp_true, lp_consistent  # the LP's own pairs: labelled once
     else:
         is_true, consistent = pair_labels(sc, merged.tri_p, merged.tri_q, merged.tri_trial, merged.triangle_pairs)
+    # Consensus also declares triangles implied by its landmark association whose log Λ is below τ.
+    with np.errstate(invalid="ignore"):
+        implied = merged.declared & (merged.triangle_log_lr < log_tau[merged.tri_trial])
     row = {**metrics.detection_counts_batch(merged.tri_trial, is_true, merged.declared, n_common),
+           "tp_implied": np.bincount(merged.tri_trial[is_true & implied], minlength=len(sc)),
            "order_flips": np.bincount(merged.tri_trial[is_true & ~consistent], minlength=len(sc)),
            **metrics.map_errors_batch(sc, merged)}
     if first_pose is not None:

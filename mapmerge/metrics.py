@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .alignment import wrap_angle
+from .alignment import covariance_in_p_frame, rotate, wrap_angle
 from .combining import ONLY_Q
 
 
@@ -190,6 +190,11 @@ def auc(fpr, tpr) -> float:
 #: degrees and the combined map's RMSE below ``SUCCESS_RMSE_SIGMAS`` σ.
 SUCCESS_DEG = 1.0
 SUCCESS_RMSE_SIGMAS = 2.0
+#: The transform is found when it matched, its rotation error is below
+#: ``SUCCESS_DEG`` and the RMS per-coordinate registration error over the
+#: common landmarks (estimated vs true transform applied to p's estimates of
+#: them) is at most this many σ; landmark association is not part of it.
+FOUND_RMS_SIGMAS = 1.0
 
 
 def map_errors(scenario, result) -> dict:
@@ -209,13 +214,14 @@ def map_errors(scenario, result) -> dict:
         ``missed_pairs`` (common landmarks not paired), ``n_conflicts``,
         ``rot_err_deg``, ``trans_err``, ``rmse`` (combined map vs truth in
         p's frame), ``duplicates`` (q-only rows of landmarks map p holds),
-        ``success`` (see ``SUCCESS_DEG``) and ``false_merge`` (matched maps
-        that share no landmark); NaN errors when there is no match.
+        ``success`` (see ``SUCCESS_DEG``), ``transform_found`` (see
+        ``FOUND_RMS_SIGMAS``) and ``false_merge`` (matched maps that share
+        no landmark); NaN errors when there is no match.
     """
     c = result.combined
     origin = np.select([c.origin == "fused", c.origin == "p"], [0, 1], 2)
     out = errors_batch(
-        np.asarray(scenario.ids_p)[None], np.asarray(scenario.ids_q)[None], np.asarray(scenario.truth)[None],
+        np.asarray(scenario.p)[None], np.asarray(scenario.ids_p)[None], np.asarray(scenario.ids_q)[None], np.asarray(scenario.truth)[None],
         np.array([scenario.theta]), np.asarray(scenario.t)[None], np.array([scenario.sigma]),
         np.array([scenario.n_common]), np.zeros(len(result.pairs), np.intp), result.pairs,
         np.array([result.n_conflicts]), np.array([result.matched]), np.array([result.theta]),
@@ -230,12 +236,12 @@ def map_errors_batch(scenarios, merged) -> dict:
     (``simulate.ScenarioBatch``); ``merged`` is a ``MergeBatch``.
     """
     c = merged.combined
-    return errors_batch(scenarios.ids_p, scenarios.ids_q, scenarios.truth, scenarios.theta, scenarios.t,
+    return errors_batch(scenarios.p, scenarios.ids_p, scenarios.ids_q, scenarios.truth, scenarios.theta, scenarios.t,
                         scenarios.sigma, scenarios.n_common, merged.pair_trial, merged.pairs, merged.n_conflicts,
                         merged.matched, merged.theta, merged.t, c.trial, c.points, c.origin, c.index_p, c.index_q)
 
 
-def errors_batch(ids_p, ids_q, truth, true_theta, true_t, sigma, n_common, pair_trial, pairs, n_conflicts,
+def errors_batch(P, ids_p, ids_q, truth, true_theta, true_t, sigma, n_common, pair_trial, pairs, n_conflicts,
                  matched, theta, t, row_trial, points, origin, index_p, index_q) -> dict:
     """The map-level errors from plain arrays (see ``map_errors_batch``)."""
     B = len(ids_p)
@@ -251,6 +257,12 @@ def errors_batch(ids_p, ids_q, truth, true_theta, true_t, sigma, n_common, pair_
     n_ids = np.int64(max(ids_p.max(), ids_q.max())) + 1
     in_p = np.isin(row_trial * n_ids + row_ids, np.arange(B)[:, None] * n_ids + ids_p)
     duplicates = np.bincount(row_trial, (origin == ONLY_Q) & in_p, B).astype(np.int64)
+    # Registration error: the estimated and the true transform applied to p's common landmarks.
+    trial_base = np.arange(B)[:, None] * n_ids
+    common = np.isin(trial_base + ids_p, trial_base + ids_q)
+    d = rotate(theta, P) + np.asarray(t)[:, None] - rotate(true_theta, P) - np.asarray(true_t)[:, None]
+    with np.errstate(invalid="ignore"):
+        registration = np.sqrt(np.sum(common * np.sum(d**2, axis=2), axis=1) / (2 * np.sum(common, axis=1)))
     nan = np.where(matched, 0.0, np.nan)
     return {
         "matched": matched, "n_pairs": K, "correct_pairs": correct, "wrong_pairs": K - correct,
@@ -258,6 +270,7 @@ def errors_batch(ids_p, ids_q, truth, true_theta, true_t, sigma, n_common, pair_
         "rot_err_deg": rot_err_deg + nan, "trans_err": trans_err + nan, "rmse": rmse + nan,
         "duplicates": duplicates,
         "success": matched & (rot_err_deg < SUCCESS_DEG) & (rmse < SUCCESS_RMSE_SIGMAS * sigma),
+        "transform_found": matched & (rot_err_deg < SUCCESS_DEG) & (registration <= FOUND_RMS_SIGMAS * sigma),
         "false_merge": matched & (n_common == 0),
     }
 
@@ -294,7 +307,6 @@ def oracle_association(P, Q, theta, t, cov_p, cov_q, density_q: float, p_shared:
     (K, 2) int ndarray
         Pairs (p index, q index), sorted by p index.
     """
-    from .alignment import covariance_in_p_frame, rotate
     from .consensus import posterior_association
 
     if not density_q > 0 or not 0 < p_shared < 1:
@@ -302,3 +314,32 @@ def oracle_association(P, Q, theta, t, cov_p, cov_q, density_q: float, p_shared:
     x = rotate(-theta, np.asarray(Q, float) - t)
     log_prior = np.log(p_shared / (1 - p_shared)) - np.log(density_q)
     return posterior_association(np.asarray(P, float), x, cov_p, covariance_in_p_frame(theta, cov_q), log_prior)[0]
+
+
+def oracle_pairs_batch(scenarios) -> dict:
+    """Correct and wrong pairs of the ``oracle_association`` of each of B simulated map pairs.
+
+    Uses the scenarios' true transforms, covariances and association prior
+    (``density``, ``p_shared`` within ``consensus.SHARED_RANGE``): the best
+    any matcher could do. Labelled an
+    oracle: it uses ground truth.
+
+    Returns
+    -------
+    dict
+        ``oracle_correct_pairs``, ``oracle_wrong_pairs``: (B,) int arrays.
+    """
+    B = len(scenarios)
+    correct, wrong = np.zeros(B, np.int64), np.zeros(B, np.int64)
+    from .consensus import SHARED_RANGE
+
+    # The prior is one number for every landmark, also those outside the
+    # overlap, where none is shared: kept within the range consensus allows
+    # its own estimate, so that "unshared" always has a price.
+    p_shared = float(np.clip(scenarios.p_shared, *SHARED_RANGE))
+    for b in range(B):  # one global assignment per map pair
+        pairs = oracle_association(scenarios.p[b], scenarios.q[b], scenarios.theta[b], scenarios.t[b],
+                                   scenarios.cov_p[b], scenarios.cov_q[b], scenarios.density, p_shared)
+        ok = scenarios.ids_p[b, pairs[:, 0]] == scenarios.ids_q[b, pairs[:, 1]]
+        correct[b], wrong[b] = ok.sum(), (~ok).sum()
+    return {"oracle_correct_pairs": correct, "oracle_wrong_pairs": wrong}

@@ -78,3 +78,25 @@ def test_docs_includes_are_refreshed_from_results(tmp_path):
     assert "old numbers" not in text and "# Title" not in text
     assert "#### Part" in text and "| 1 |" in text and "![f](../results/f.png)" in text
     assert text.startswith("intro\n") and text.endswith("<!-- end include -->\nrest\n")
+
+
+def test_compare_sweep_tables_and_figure_on_both_layouts(tmp_path):
+    """A small version of the compare experiment: both layouts, the oracle curve, the figure."""
+    from experiments.compare import write_tables
+
+    out = tmp_path / "compare"
+    run = cli(["-m", "experiment=compare", "mc.n_trials=6", "mc.chunk_size=3", "scenario.n_landmarks=40",
+               "matcher.method=paper,consensus", "scenario.snr_db=15,30", f"aggregate_dir={out / 'compare'}",
+               "mc.progress=false"], tmp_path, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    made = write_tables(out)
+    assert {p.name for p in made} >= {"compare.csv", "summary.md", "success.png"}
+    comp = pd.read_csv(out / "compare.csv")
+    assert set(comp.layout) == {"strip", "interleaved"} and set(comp.method) == {"paper", "consensus"}
+    assert comp.n_trials_unrelated.eq(6).all() and comp.oracle_correct_per_trial.notna().all()
+    consensus = comp[(comp.method == "consensus") & (comp.snr_db == 30)]
+    assert (consensus.found_rate == 1).all() and (consensus.false_merges == 0).all()
+    # At 30 dB consensus pairs as the oracle association does, within a pair per trial (the
+    # oracle maximises the posterior, so a matcher may now and then pair one more correctly).
+    assert np.allclose(consensus.correct_per_trial, consensus.oracle_correct_per_trial, atol=1.0)
+    assert "interleaved" in (out / "summary.md").read_text()

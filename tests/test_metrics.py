@@ -91,3 +91,19 @@ def test_oracle_association_on_a_synthetic_pair():
                                        np.broadcast_to(cov, (100, 2, 2)), density_q=1.0, p_shared=0.75)
     correct = np.sum(sc.ids_p[pairs[:, 0]] == sc.ids_q[pairs[:, 1]])
     assert correct == sc.n_common and len(pairs) == correct
+
+
+def test_oracle_pairs_and_transform_found_on_a_batch():
+    batch = mm.simulate.make_pairs(100, 0.75, 40, [1, 2, 3], layout="interleaved", clutter=0.1)
+    oracle = metrics.oracle_pairs_batch(batch)
+    # At 40 dB the oracle pairs every common landmark and nothing else.
+    np.testing.assert_array_equal(oracle["oracle_correct_pairs"], [75, 75, 75])
+    np.testing.assert_array_equal(oracle["oracle_wrong_pairs"], [0, 0, 0])
+    sc = batch[0]
+    res = mm.merge_maps(sc.p, sc.q, sc.sigma)
+    assert metrics.map_errors(sc, res)["transform_found"]
+    # The same correspondences with q turned by 2 degrees about its centroid: the transform is wrong.
+    centre = sc.q.mean(axis=0)
+    turned = mm.alignment.rotate(np.radians(2.0), sc.q - centre) + centre
+    off = mm.merge_maps(sc.p, turned, sc.sigma)
+    assert off.matched and not metrics.map_errors(sc, off)["transform_found"]

@@ -92,6 +92,31 @@ def test_harness_rows_are_the_library_on_each_trial(scenario, method):
         assert (rows.n_conflicts > 0).any()
 
 
+def test_harness_on_realistic_maps_is_the_library_with_covariances_and_the_oracle():
+    """Interleaved layout, clutter and anisotropic noise: the harness passes the
+    scenario's covariances, and its oracle columns are the oracle association's."""
+    extra = {"layout": "interleaved", "p_detect": 0.8, "clutter": 0.1, "anisotropy": 2.0}
+    scenario = {**_scenario(40, 0.75, 25.0), **extra}
+    matcher = {"method": "consensus", "objective": "lr", "taus": ["chi2:0.01"], "use_cov": True, "oracle": True}
+    rows, _ = run_chunk(4, scenario, matcher, 0, 6)
+    for k, seed in enumerate(trial_seeds(4, scenario, range(6))):
+        sc = mm.simulate.make_pair(40, 0.75, 25.0, rng=seed, **extra)
+        assert sc.p.shape == (44, 2)
+        res = mm.merge_maps(sc.p, sc.q, sc.sigma, method="consensus", cov_p=sc.cov_p, cov_q=sc.cov_q)
+        row = rows[rows.trial == k].iloc[0]
+        for key, value in mm.metrics.map_errors(sc, res).items():
+            assert row[key] == value or (np.isnan(value) and np.isnan(row[key])), (k, key)
+        oracle = mm.metrics.oracle_association(sc.p, sc.q, sc.theta, sc.t, sc.cov_p, sc.cov_q, sc.density,
+                                               sc.p_shared)
+        right = np.sum(sc.ids_p[oracle[:, 0]] == sc.ids_q[oracle[:, 1]])
+        assert (row.oracle_correct_pairs, row.oracle_wrong_pairs) == (right, len(oracle) - right)
+    assert rows.transform_found.all() and (rows.tp_implied <= rows.tp).all()
+    # The cell differs from the strip layout's: its seeds depend on the new keys.
+    assert harness.cell_key(scenario) != harness.cell_key(_scenario(40, 0.75, 25.0))
+    assert harness.cell_key({**_scenario(40, 0.75, 25.0), "layout": "strip", "p_detect": 0.9, "clutter": 0.0,
+                             "anisotropy": 0.0}) == harness.cell_key(_scenario(40, 0.75, 25.0))
+
+
 def test_chunking_does_not_change_results():
     scenario = _scenario(15, 0.75, 10.0)
     matcher = {"method": "cyclic", "objective": "lr", "taus": ["oracle", "chi2:0.01"]}
