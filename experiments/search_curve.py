@@ -23,19 +23,10 @@ import pandas as pd
 from joblib import Parallel, delayed
 
 import mapmerge as mm
-from mapmerge.alignment import rotate, wrap_angle
 
 from .aggregate import save_table
 
 SNRS = np.arange(0.0, 40.01, 2.5)
-
-
-def transform_found(sc, res) -> bool:
-    if not res.matched or np.degrees(abs(wrap_angle(res.theta - sc.theta))) >= 1.0:
-        return False
-    _, ip, _ = np.intersect1d(sc.ids_p, sc.ids_q, return_indices=True)
-    d = rotate(res.theta, sc.p[ip]) + res.t - (rotate(sc.theta, sc.p[ip]) + sc.t)
-    return bool(np.sqrt(np.mean(np.sum(d**2, axis=1) / 2)) <= sc.sigma)
 
 
 def cell(method: str, snr: float, trials: int) -> dict:
@@ -46,7 +37,7 @@ def cell(method: str, snr: float, trials: int) -> dict:
         clock = time.perf_counter()
         res = mm.merge_maps(sc.p, sc.q, sc.sigma, method=method)
         times.append(time.perf_counter() - clock)
-        found += transform_found(sc, res)
+        found += res.matched and mm.metrics.transform_found(sc, res.theta, res.t)
         un = mm.simulate.make_pair(100, 0.75, snr, rng=200_000 + k, unrelated=True)
         false += mm.merge_maps(un.p, un.q, un.sigma, method=method).matched
     return {"method": method, "snr_db": snr, "trials": trials, "transform_found": found / trials,

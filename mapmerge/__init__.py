@@ -18,7 +18,7 @@ on a batch of map pairs; the one-pair functions are its batch of one.
 >>> res = mm.merge_maps(sc.p, sc.q, sc.sigma)
 """
 
-from . import metrics, simulate
+from . import exhaustive, metrics, simulate
 from .alignment import Alignment, align, rotation, wrap_angle
 from .combining import CombinedMap
 from .mapfiles import LandmarkMap, MapFileError, read_map, write_map

@@ -257,12 +257,8 @@ def errors_batch(P, ids_p, ids_q, truth, true_theta, true_t, sigma, n_common, pa
     n_ids = np.int64(max(ids_p.max(), ids_q.max())) + 1
     in_p = np.isin(row_trial * n_ids + row_ids, np.arange(B)[:, None] * n_ids + ids_p)
     duplicates = np.bincount(row_trial, (origin == ONLY_Q) & in_p, B).astype(np.int64)
-    # Registration error: the estimated and the true transform applied to p's common landmarks.
     trial_base = np.arange(B)[:, None] * n_ids
-    common = np.isin(trial_base + ids_p, trial_base + ids_q)
-    d = rotate(theta, P) + np.asarray(t)[:, None] - rotate(true_theta, P) - np.asarray(true_t)[:, None]
-    with np.errstate(invalid="ignore"):
-        registration = np.sqrt(np.sum(common * np.sum(d**2, axis=2), axis=1) / (2 * np.sum(common, axis=1)))
+    registration = registration_rms(P, np.isin(trial_base + ids_p, trial_base + ids_q), theta, t, true_theta, true_t)
     nan = np.where(matched, 0.0, np.nan)
     return {
         "matched": matched, "n_pairs": K, "correct_pairs": correct, "wrong_pairs": K - correct,
@@ -273,6 +269,37 @@ def errors_batch(P, ids_p, ids_q, truth, true_theta, true_t, sigma, n_common, pa
         "transform_found": matched & (rot_err_deg < SUCCESS_DEG) & (registration <= FOUND_RMS_SIGMAS * sigma),
         "false_merge": matched & (n_common == 0),
     }
+
+
+def registration_rms(P, common, theta, t, true_theta, true_t) -> np.ndarray:
+    """RMS per-coordinate distance between the estimated and the true transform
+    applied to the same points: p's estimates of its common landmarks.
+
+    Parameters
+    ----------
+    P : (B, n, 2) ndarray
+    common : (B, n) bool ndarray
+        Rows of p whose landmark q also holds.
+    theta, true_theta : (B,) ndarray
+    t, true_t : (B, 2) ndarray
+
+    Returns
+    -------
+    (B,) ndarray
+        NaN where there is no common landmark or no estimate.
+    """
+    d = rotate(theta, P) + np.asarray(t)[:, None] - rotate(true_theta, P) - np.asarray(true_t)[:, None]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.sqrt(np.sum(common * np.sum(d**2, axis=2), axis=1) / (2 * np.sum(common, axis=1)))
+
+
+def transform_found(scenario, theta: float, t) -> bool:
+    """Whether a transform estimate of one map pair counts as found (see ``FOUND_RMS_SIGMAS``)."""
+    rot_err = np.degrees(np.abs(wrap_angle(theta - scenario.theta)))
+    common = np.isin(scenario.ids_p, scenario.ids_q)[None]
+    rms = registration_rms(np.asarray(scenario.p)[None], common, np.array([theta]), np.asarray(t, float)[None],
+                           np.array([scenario.theta]), np.asarray(scenario.t)[None])[0]
+    return bool(rot_err < SUCCESS_DEG and rms <= FOUND_RMS_SIGMAS * scenario.sigma)
 
 
 def oracle_association(P, Q, theta, t, cov_p, cov_q, density_q: float, p_shared: float):

@@ -1,0 +1,185 @@
+"""The exhaustive maximum-likelihood detector: could any matcher have merged this pair?
+
+A reference, not a matcher: it is told the true noise σ and the layout's
+prior, searches every rotation and translation on a grid, and is far slower
+than the matchers. Its success rate is the limit curve the matchers are
+compared with.
+
+Model. Map q's landmarks are brought into p's frame by a candidate rigid
+motion, ``x_j = R(θ)ᵀ (q_j - t)``. Under "related" each x_j inside p's
+convex hull is, with prior π, a landmark p also holds, observed as
+``N(p_i, s² I)`` around one of them (``s² = 2σ²``, both maps' noise), and
+otherwise an unshared landmark, uniform at p's density λ. Under
+"unrelated" every x_j is uniform. The log-likelihood ratio is
+
+    Λ(θ, t) = Σ_{j inside} log(1 - π + (π / λ) Σ_i N(x_j - p_i; 0, s² I)),
+
+and the detector's statistic is its maximum over (θ, t). When at most one p
+landmark lies within a few s of each x_j (landmark spacing >> s, true below
+the SNRs where every matcher already succeeds), Λ separates into
+``n_inside · log(1 - π)`` plus a saturating bump ``log(1 + c N_ij)`` per
+landmark pair, ``c = π / ((1 - π) λ)``. So on a grid:
+
+1. rotations of step ``s / R`` (R the largest distance of a p landmark from
+   p's centroid), translations on cells ``GRID_STEP · s`` wide;
+2. at each rotation the landmark pairs' translations are counted on cells
+   ``GRID_STEP · s`` wide and convolved with the bump (cut at
+   ``KERNEL_SIGMAS`` s), and the count of q landmarks inside p's hull at
+   every cell is one correlation of two rasters (both by FFT);
+3. each rotation's best cell is scored by the exact Λ, and the
+   ``GRID_PEAKS`` best are refined by EM (responsibilities, then a weighted
+   closed-form fit, ``EM_ROUNDS`` times) and scored again.
+
+The statistic is then compared with a threshold measured on unrelated pairs
+(the experiment ``experiments.detector`` does so on its own tuning seeds).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.signal import fftconvolve
+from scipy.spatial import ConvexHull, cKDTree
+
+from .consensus import inside_hull
+
+#: Translation cells, in units of s.
+GRID_STEP = 0.5
+#: The bump is cut this many s from its pair's translation on the grid.
+KERNEL_SIGMAS = 3.5
+#: Grid points refined (the best ones, at distinct rotations).
+GRID_PEAKS = 8
+#: EM rounds of each refinement.
+EM_ROUNDS = 10
+#: Exact Λ counts p landmarks within this many s of a mapped q landmark.
+EXACT_RADIUS = 5.0
+
+
+def max_log_lr(P, Q, sigma: float, p_shared: float, density: float):
+    """The exhaustive detector's statistic: max over (θ, t) of the log-likelihood ratio Λ.
+
+    Parameters
+    ----------
+    P, Q : (n_p, 2), (n_q, 2) ndarray
+        The two maps.
+    sigma : float
+        The true per-coordinate noise of one landmark, > 0.
+    p_shared : float
+        Prior π that a q landmark inside p's hull is common, in (0, 1).
+    density : float
+        Landmarks of p per unit area, > 0.
+
+    Returns
+    -------
+    log_lr : float
+        The maximum of Λ found.
+    theta : float
+    t : (2,) ndarray
+        Where: ``q ≈ R(θ) p + t``.
+    """
+    P, Q = np.asarray(P, float), np.asarray(Q, float)
+    if not (sigma > 0 and 0 < p_shared < 1 and density > 0):
+        raise ValueError("sigma and density must be > 0 and p_shared in (0, 1)")
+    s = np.sqrt(2.0) * sigma
+    c = p_shared / ((1 - p_shared) * density * 2 * np.pi * s**2)
+    hull = ConvexHull(P)
+    theta, t = _grid_peaks(P, Q, s, c, p_shared, hull)
+    best = (-np.inf, 0.0, np.zeros(2))
+    for th, tt in zip(theta, t):
+        th, tt = _em(P, Q, th, tt, s, c, hull)
+        value = exact_log_lr(P, Q, th, tt, s, c, p_shared, hull)
+        if value > best[0]:
+            best = (value, th, tt)
+    return best
+
+
+def exact_log_lr(P, Q, theta, t, s, c, p_shared, hull) -> float:
+    """Λ at one transform (module docstring), with p's landmarks within ``EXACT_RADIUS`` s."""
+    x = _to_p(Q, theta, t)
+    x = x[inside_hull(hull, x)]
+    if not len(x):
+        return 0.0
+    d2 = _near_d2(P, x, EXACT_RADIUS * s)
+    mix = np.bincount(d2[0], np.exp(-d2[1] / (2 * s**2)), len(x))
+    return float(len(x) * np.log(1 - p_shared) + np.sum(np.log1p(c * mix)))
+
+
+def _to_p(Q, theta, t):
+    cth, sth = np.cos(theta), np.sin(theta)
+    d = Q - t
+    return np.stack([cth * d[:, 0] + sth * d[:, 1], -sth * d[:, 0] + cth * d[:, 1]], axis=1)
+
+
+def _near_d2(P, x, radius):
+    """(j, d², i) of every p landmark within ``radius`` of each x_j."""
+    pairs = cKDTree(x).sparse_distance_matrix(cKDTree(P), radius, output_type="ndarray")
+    return pairs["i"], pairs["v"] ** 2, pairs["j"]
+
+
+def _em(P, Q, theta, t, s, c, hull):
+    """EM on the mixture: responsibilities of each (i, j), then the weighted closed-form fit."""
+    for _ in range(EM_ROUNDS):
+        x = _to_p(Q, theta, t)
+        inside = np.flatnonzero(inside_hull(hull, x))
+        j, d2, i = _near_d2(P, x[inside], EXACT_RADIUS * s)
+        if len(j) < 2:
+            break
+        bump = c * np.exp(-d2 / (2 * s**2))
+        w = bump / (1 + np.bincount(j, bump, len(inside))[j])
+        a, b = P[i], Q[inside[j]]
+        wa, wb = np.average(a, axis=0, weights=w), np.average(b, axis=0, weights=w)
+        a, b = a - wa, b - wb
+        theta = float(np.arctan2(np.sum(w * (a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])),
+                                 np.sum(w * (a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]))))
+        cth, sth = np.cos(theta), np.sin(theta)
+        t = wb - np.array([cth * wa[0] - sth * wa[1], sth * wa[0] + cth * wa[1]])
+    return theta, t
+
+
+def _grid_peaks(P, Q, s, c, p_shared, hull):
+    """The ``GRID_PEAKS`` best (θ, t) of the grid, at distinct rotations.
+
+    Per rotation, the pair translations are counted on cells ``GRID_STEP·s``
+    wide and convolved with the bump, the count of q landmarks inside p's
+    hull is a correlation of two rasters (both by FFT), and the best cell is
+    kept; these are ranked by their exact Λ.
+    """
+    pm, qm = P.mean(axis=0), Q.mean(axis=0)
+    pc, qc = P - pm, Q - qm
+    reach = np.sqrt(np.max(np.sum(pc**2, axis=1)))
+    reach_q = np.sqrt(np.max(np.sum(qc**2, axis=1)))
+    n_theta = int(np.ceil(2 * np.pi * reach / s))
+    thetas = 2 * np.pi * np.arange(n_theta) / n_theta
+    h = GRID_STEP * s
+    K = int(np.ceil(KERNEL_SIGMAS / GRID_STEP))
+    off = h * np.arange(-K, K + 1)
+    kernel = np.log1p(c * np.exp(-(off[:, None] ** 2 + off[None, :] ** 2) / (2 * s**2)))
+    # q's landmarks on the grid; p's hull rotated is rasterised per rotation.
+    Ka, Kb = int(np.ceil(reach_q / h)), int(np.ceil(reach / h))
+    # Translations reach at most reach + reach_q: cells -M..M hold them all.
+    M = Ka + Kb
+    side = 2 * M + 1
+    A = np.zeros((2 * Ka + 1, 2 * Ka + 1))
+    np.add.at(A, tuple((np.rint(qc / h).astype(int) + Ka).T), 1.0)
+    grid_b = h * np.stack(np.meshgrid(np.arange(-Kb, Kb + 1), np.arange(-Kb, Kb + 1), indexing="ij"), -1)
+    hull_c = ConvexHull(pc)
+    log_miss = np.log(1 - p_shared)
+    best_cell = np.zeros((n_theta, 2), dtype=np.int64)
+    for k, theta in enumerate(thetas):
+        cth, sth = np.cos(theta), np.sin(theta)
+        rp = np.stack([cth * pc[:, 0] - sth * pc[:, 1], sth * pc[:, 0] + cth * pc[:, 1]], axis=1)
+        cell = np.rint((qc[None, :, :] - rp[:, None, :]).reshape(-1, 2) / h).astype(np.int64) + M
+        counts = np.bincount(cell[:, 0] * side + cell[:, 1], minlength=side * side).reshape(side, side)
+        value = fftconvolve(counts, kernel, mode="same")
+        back = np.stack([cth * grid_b[..., 0] + sth * grid_b[..., 1], -sth * grid_b[..., 0] + cth * grid_b[..., 1]],
+                        axis=-1).reshape(-1, 2)
+        B = inside_hull(hull_c, back).reshape(grid_b.shape[:2]).astype(float)
+        # n_inside(m) = Σ_u A(u) B(u - m), a correlation: index m + Ka + Kb of the full convolution.
+        conv = np.rint(fftconvolve(A, B[::-1, ::-1], mode="full"))
+        value += log_miss * conv
+        best_cell[k] = np.divmod(int(np.argmax(value)), side)
+    tc = (best_cell - M) * h
+    cth, sth = np.cos(thetas), np.sin(thetas)
+    ts = qm + tc - np.stack([cth * pm[0] - sth * pm[1], sth * pm[0] + cth * pm[1]], axis=1)
+    exact = np.array([exact_log_lr(P, Q, th, t, s, c, p_shared, hull) for th, t in zip(thetas, ts)])
+    order = np.argsort(-exact, kind="stable")[:GRID_PEAKS]
+    return thetas[order], ts[order]

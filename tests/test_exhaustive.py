@@ -1,0 +1,31 @@
+"""The exhaustive ML detector (a limit for the matchers, not a method)."""
+
+import numpy as np
+import pytest
+from scipy.spatial import ConvexHull
+
+import mapmerge as mm
+from mapmerge import exhaustive
+
+
+def test_detector_finds_the_transform_and_separates_related_from_unrelated():
+    related = mm.simulate.make_pair(60, 0.75, 10, rng=10001)
+    unrelated = mm.simulate.make_pair(60, 0.75, 10, rng=10001, unrelated=True)
+    value, theta, t = exhaustive.max_log_lr(related.p, related.q, related.sigma, 0.9, related.density)
+    assert mm.metrics.transform_found(related, theta, t)
+    # The maximum is at least Λ at the true transform (the grid and EM find the peak).
+    s = np.sqrt(2) * related.sigma
+    c = 0.9 / (0.1 * related.density * 2 * np.pi * s**2)
+    at_truth = exhaustive.exact_log_lr(related.p, related.q, related.theta, related.t, s, c, 0.9,
+                                       ConvexHull(related.p))
+    assert value >= at_truth - 1e-9
+    null, _, _ = exhaustive.max_log_lr(unrelated.p, unrelated.q, unrelated.sigma, 0.9, unrelated.density)
+    assert value > null + 10
+
+
+def test_detector_rejects_bad_arguments():
+    sc = mm.simulate.make_pair(20, 0.75, 10, rng=1)
+    for kwargs in ({"sigma": 0.0}, {"p_shared": 1.0}, {"density": -1.0}):
+        args = {"sigma": sc.sigma, "p_shared": 0.9, "density": 1.0, **kwargs}
+        with pytest.raises(ValueError, match="sigma and density"):
+            exhaustive.max_log_lr(sc.p, sc.q, **args)
