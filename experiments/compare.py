@@ -16,7 +16,9 @@ correct and wrong landmark pairs per trial next to the oracle association's
 (rotation error < 1° and combined-map RMSE < 2σ), transform found (rotation
 < 1° and registration error <= σ), false merges on unrelated pairs and the
 median time per merge; and ``success.png`` / ``.pdf``: transform found and
-wrong pairs vs SNR per method and layout, with the oracle curve.
+wrong pairs vs SNR per method and layout, with the oracle association's
+wrong pairs and, when ``results/detector/limit.csv`` exists (``python -m
+experiments.detector``), the exhaustive ML detector's transform-found curve.
 """
 
 from __future__ import annotations
@@ -55,8 +57,9 @@ def comparison_table(table: pd.DataFrame) -> pd.DataFrame:
                                                            "snr_db"])
 
 
-def success_figure(comp: pd.DataFrame, out: Path) -> list[Path]:
-    """Transform found and wrong pairs per trial vs SNR, one column per layout, one line per method and τ rule."""
+def success_figure(comp: pd.DataFrame, out: Path, limit: pd.DataFrame | None = None) -> list[Path]:
+    """Transform found and wrong pairs per trial vs SNR, one column per layout, one line per method and τ rule;
+    ``limit`` (``experiments.detector``'s table) adds the exhaustive ML detector's curve."""
     layouts = sorted(comp.layout.unique(), key=lambda s: s != "strip")
     with plt.rc_context(STYLE):
         fig, axes = plt.subplots(2, len(layouts), figsize=(3.6 * len(layouts), 5.4), sharex=True, squeeze=False)
@@ -68,6 +71,10 @@ def success_figure(comp: pd.DataFrame, out: Path) -> list[Path]:
                 ls = "--" if tau == "oracle" else "-"
                 top.plot(g.snr_db, g.found_rate, marker="o", ms=2.5, ls=ls, label=label)
                 bottom.plot(g.snr_db, g.wrong_per_trial, marker="o", ms=2.5, ls=ls, label=label)
+            if limit is not None and (limit.layout == layout).any():
+                lim = limit[limit.layout == layout]
+                top.plot(lim.snr_db, lim.found_rate, color="k", lw=1.4, ls=":",
+                         label="exhaustive ML detector (true σ)")
             if "oracle_wrong_per_trial" in part:
                 # Same trials for every method: the oracle's curve is one.
                 limit = part.groupby("snr_db").oracle_wrong_per_trial.first()
@@ -82,7 +89,11 @@ def success_figure(comp: pd.DataFrame, out: Path) -> list[Path]:
             bottom.set_xlabel("SNR (dB)")
             for ax in (top, bottom):
                 ax.grid(alpha=0.3, lw=0.4)
-        axes[1, -1].legend(frameon=False, fontsize=5.5)
+        axes[0, -1].legend(frameon=False, fontsize=5.5)
+        handles, labels = axes[1, -1].get_legend_handles_labels()
+        oracle = [(h, lab) for h, lab in zip(handles, labels) if lab.startswith("oracle")]
+        if oracle:  # the methods are named in the panel above
+            axes[1, -1].legend(*zip(*oracle), frameon=False, fontsize=5.5)
         fig.tight_layout()
         return _save(fig, out, "success")
 
@@ -94,7 +105,9 @@ def write_tables(out: Path) -> list[Path]:
     table = pd.concat([pd.read_csv(t).merge(pd.read_csv(t.with_name("timing.csv")), on=CELL + ["tau"])
                        for t in tables], ignore_index=True)
     comp = comparison_table(table)
-    return [*save_table(comp, out / "compare"), summary(comp, out / "summary.md"), *success_figure(comp, out)]
+    detector = out.parent / "detector" / "limit.csv"
+    limit = pd.read_csv(detector) if detector.exists() else None
+    return [*save_table(comp, out / "compare"), summary(comp, out / "summary.md"), *success_figure(comp, out, limit)]
 
 
 #: Methods in the order the summary lists them: the paper, its variants, the baselines.
