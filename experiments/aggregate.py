@@ -40,7 +40,7 @@ PFA_GRID = np.unique(np.r_[0.0, np.logspace(-5, 0, 151), np.linspace(0, 1, 201)]
 LATER_COLUMNS = {"use_cov": False, **LATER_KEYS}
 
 
-def _with_defaults(trials: pd.DataFrame) -> pd.DataFrame:
+def with_defaults(trials: pd.DataFrame) -> pd.DataFrame:
     """Runs written before a column existed ran at its first-release value."""
     return trials.assign(**{k: v for k, v in LATER_COLUMNS.items() if k not in trials})
 
@@ -59,7 +59,7 @@ def load_examples(dirs) -> dict[str, pd.DataFrame]:
         paths = sorted(run.glob("example_*.parquet"))
         if not paths:
             continue
-        cell = _with_defaults(pd.read_parquet(run / "trials.parquet"))[CELL].iloc[0].to_dict()
+        cell = with_defaults(pd.read_parquet(run / "trials.parquet"))[CELL].iloc[0].to_dict()
         for path in paths:
             table = pd.read_parquet(path)
             # The table's own columns win (its "kind" is p / q / merged / truth).
@@ -120,7 +120,7 @@ def _once(parts: list[pd.DataFrame]) -> pd.DataFrame:
 
 
 def _load_run(run: Path) -> tuple[pd.DataFrame, pd.DataFrame]:
-    t = _with_defaults(pd.read_parquet(run / "trials.parquet"))
+    t = with_defaults(pd.read_parquet(run / "trials.parquet"))
     t = t.merge(pd.read_parquet(run / "timings.parquet"), on=["trial", "tau"], how="left")
     return t, pd.read_parquet(run / "pairs.parquet").assign(seed=t["seed"].iloc[0])
 

@@ -33,7 +33,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from .aggregate import CELL, markdown, save_table  # noqa: E402
+from .aggregate import CELL, markdown, save_table, with_defaults  # noqa: E402
 from .figures import STYLE, _save  # noqa: E402
 from .paper import _call  # noqa: E402
 
@@ -77,8 +77,8 @@ def success_figure(comp: pd.DataFrame, out: Path, limit: pd.DataFrame | None = N
                          label="exhaustive ML detector (true σ)")
             if "oracle_wrong_per_trial" in part:
                 # Same trials for every method: the oracle's curve is one.
-                limit = part.groupby("snr_db").oracle_wrong_per_trial.first()
-                bottom.plot(limit.index, limit.to_numpy(), color="k", lw=1.4, ls=":",
+                oracle = part.groupby("snr_db").oracle_wrong_per_trial.first()
+                bottom.plot(oracle.index, oracle.to_numpy(), color="k", lw=1.4, ls=":",
                             label="oracle association (true transform)")
             n, ov = part.n_landmarks.iloc[0], part.overlap.iloc[0]
             top.set_title(f"{layout} layout: {n} landmarks per map, {ov:.0%} common")
@@ -102,7 +102,9 @@ def write_tables(out: Path) -> list[Path]:
     tables = sorted(out.glob("*/table.csv"))
     if not tables:
         raise FileNotFoundError(f"no */table.csv below {out}: run without --tables first")
-    table = pd.concat([pd.read_csv(t).merge(pd.read_csv(t.with_name("timing.csv")), on=CELL + ["tau"])
+    # Tables written before a scenario column existed ran at its first-release value.
+    table = pd.concat([with_defaults(pd.read_csv(t)).merge(with_defaults(pd.read_csv(t.with_name("timing.csv"))),
+                                                           on=CELL + ["tau"])
                        for t in tables], ignore_index=True)
     comp = comparison_table(table)
     detector = out.parent / "detector" / "limit.csv"

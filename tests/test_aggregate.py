@@ -89,6 +89,10 @@ def test_compare_sweep_tables_and_figure_on_both_layouts(tmp_path):
                "matcher.method=paper,consensus", "scenario.snr_db=30", f"aggregate_dir={out / 'compare'}",
                "mc.progress=false"], tmp_path, timeout=300)
     assert run.returncode == 0, run.stderr[-2000:]
+    # The exhaustive detector's limit curve is drawn when its table exists.
+    (tmp_path / "detector").mkdir()
+    pd.DataFrame({"layout": ["strip", "interleaved"], "snr_db": [30.0, 30.0], "found_rate": [1.0, 1.0]}).to_csv(
+        tmp_path / "detector" / "limit.csv", index=False)
     made = write_tables(out)
     assert {p.name for p in made} >= {"compare.csv", "summary.md", "success.png"}
     comp = pd.read_csv(out / "compare.csv")
@@ -100,3 +104,17 @@ def test_compare_sweep_tables_and_figure_on_both_layouts(tmp_path):
     # oracle maximises the posterior, so a matcher may now and then pair one more correctly).
     assert np.allclose(consensus.correct_per_trial, consensus.oracle_correct_per_trial, atol=1.0)
     assert "interleaved" in (out / "summary.md").read_text()
+
+
+def test_realistic_sweep_summary_against_the_oracle(tmp_path):
+    """A small version of the realistic experiment: interleaved, clutter, anisotropic noise."""
+    from experiments.realistic import summary
+
+    out = tmp_path / "realistic"
+    run = cli(["-m", "experiment=realistic", "mc.n_trials=4", "scenario.n_landmarks=40", "scenario.snr_db=30",
+               "scenario.clutter=0.1", "scenario.anisotropy=2.0", f"aggregate_dir={out}", "mc.progress=false"],
+              tmp_path, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    s = summary(pd.read_csv(out / "table.csv"))
+    assert len(s) == 1 and s["unrelated pairs"].iloc[0] == 4 and s["false merges"].iloc[0] == 0
+    assert s["transform found"].iloc[0] == 1 and abs(s["correct vs oracle"].iloc[0] - 1) < 0.05
