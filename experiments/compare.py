@@ -4,11 +4,12 @@
     python -m experiments.compare --tables   # only rebuild tables and figure from results/compare
 
 Runs the ``compare`` sweep (paper, cyclic, consensus and Groth's voting on
-the paper's Fig. 1 scenario, 100 landmarks and 75 % common, in both layouts: the paper's strip and the interleaved layout where each
-agent detects an overlap landmark with probability 0.9; 0-40 dB in 2.5 dB
-steps, related and unrelated map pairs) and, when astroalign is installed,
-``compare_astroalign``; ``compare_search`` runs the global search on the
-same trials; then writes, per scenario, ``compare.md`` /
+the paper's Fig. 1 scenario, 100 landmarks and 75 % common, in both
+layouts: the paper's strip and the interleaved layout where each agent
+detects an overlap landmark with probability 0.9; 0-40 dB in 2.5 dB steps,
+300 related and 300 unrelated map pairs per cell), ``compare_search`` (the
+global search on the same trials) and, when astroalign is installed,
+``compare_astroalign``; then writes, per scenario, ``compare.md`` /
 ``compare.csv``: method x SNR with triangle detection (TP / common, and the
 part declared by the GLRT test alone) and false positives per trial,
 correct and wrong landmark pairs per trial next to the oracle association's
