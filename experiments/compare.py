@@ -62,51 +62,65 @@ def success_figure(comp: pd.DataFrame, out: Path, limit: pd.DataFrame | None = N
     """Transform found and wrong pairs per trial vs SNR, one column per layout, one line per method and τ rule;
     ``limit`` (``experiments.detector``'s table) adds the exhaustive ML detector's curve."""
     layouts = sorted(comp.layout.unique(), key=lambda s: s != "strip")
+    colour = {m: f"C{k}" for k, m in enumerate(METHOD_ORDER)}
     with plt.rc_context(STYLE):
-        fig, axes = plt.subplots(2, len(layouts), figsize=(3.6 * len(layouts), 5.4), sharex=True, squeeze=False)
+        fig, axes = plt.subplots(2, len(layouts), figsize=(3.4 * len(layouts), 5.6), sharex=True, squeeze=False)
         for col, layout in enumerate(layouts):
             part = comp[comp.layout == layout]
             top, bottom = axes[0, col], axes[1, col]
             for (method, tau), g in part.groupby(["method", "tau"], sort=True):
                 label = method if tau == "none" else f"{method}, τ {tau}"
-                ls = "--" if tau == "oracle" else "-"
-                top.plot(g.snr_db, g.found_rate, marker="o", ms=2.5, ls=ls, label=label)
-                bottom.plot(g.snr_db, g.wrong_per_trial, marker="o", ms=2.5, ls=ls, label=label)
+                style = {"color": colour.get(method, "C9"), "marker": "o", "ms": 2.5, "label": label,
+                         **({"ls": "--", "alpha": 0.5} if tau == "oracle" else {}),
+                         # consensus falls back on the search: drawn thin, it shows where they differ.
+                         **({"lw": 0.7, "ms": 1.2} if method == "search" else {})}
+                top.plot(g.snr_db, g.found_rate, **style)
+                bottom.plot(g.snr_db, g.wrong_per_trial, **style)
             if limit is not None and (limit.layout == layout).any():
                 lim = limit[limit.layout == layout]
                 top.plot(lim.snr_db, lim.found_rate, color="k", lw=1.4, ls=":",
-                         label="exhaustive ML detector (true σ)")
+                         label="limit: exhaustive ML detector (true σ)")
             if "oracle_wrong_per_trial" in part:
                 # Same trials for every method: the oracle's curve is one.
                 oracle = part.groupby("snr_db").oracle_wrong_per_trial.first()
-                bottom.plot(oracle.index, oracle.to_numpy(), color="k", lw=1.4, ls=":",
-                            label="oracle association (true transform)")
-            n, ov = part.n_landmarks.iloc[0], part.overlap.iloc[0]
-            top.set_title(f"{layout} layout: {n} landmarks per map, {ov:.0%} common")
+                bottom.plot(oracle.index, oracle.to_numpy(), color="k", lw=1.4, ls="-.",
+                            label="limit: oracle association (true transform)")
+            top.set_title(f"{layout} layout")
             top.set_ylabel("transform found")
             top.set_ylim(-0.02, 1.02)
             bottom.set_ylabel("wrong landmark pairs per trial")
             bottom.set_yscale("symlog", linthresh=0.1)
+            bottom.set_ylim(0, 150)
             bottom.set_xlabel("SNR (dB)")
             for ax in (top, bottom):
                 ax.grid(alpha=0.3, lw=0.4)
-        axes[0, -1].legend(frameon=False, fontsize=5.5)
-        handles, labels = axes[1, -1].get_legend_handles_labels()
-        oracle = [(h, lab) for h, lab in zip(handles, labels) if lab.startswith("oracle")]
-        if oracle:  # the methods are named in the panel above
-            axes[1, -1].legend(*zip(*oracle), frameon=False, fontsize=5.5)
-        fig.tight_layout()
+        n, ov = comp.n_landmarks.iloc[0], comp.overlap.iloc[0]
+        fig.suptitle(f"{n} landmarks per map, {ov:.0%} common; τ oracle (dashed) is a limit of the LP")
+        # One legend for the figure: every line of every panel, once.
+        named = {}
+        for ax in axes.ravel():
+            for h, lab in zip(*ax.get_legend_handles_labels()):
+                named.setdefault(lab, h)
+        fig.legend(named.values(), named.keys(), loc="lower center", ncol=3, frameon=False, fontsize=6)
+        fig.tight_layout(rect=(0, 0.1, 1, 1))
         return _save(fig, out, "success")
+
+
+def _with_timing(path: Path) -> pd.DataFrame:
+    """A sweep's table with its median times (NaN where timing.csv, which git does not keep, is missing);
+    tables written before a scenario column existed read at its first-release value."""
+    table = with_defaults(pd.read_csv(path))
+    timing = path.with_name("timing.csv")
+    if not timing.exists():
+        return table.assign(median_ms_per_merge=float("nan"))
+    return table.merge(with_defaults(pd.read_csv(timing)), on=CELL + ["tau"])
 
 
 def write_tables(out: Path) -> list[Path]:
     tables = sorted(out.glob("*/table.csv"))
     if not tables:
         raise FileNotFoundError(f"no */table.csv below {out}: run without --tables first")
-    # Tables written before a scenario column existed ran at its first-release value.
-    table = pd.concat([with_defaults(pd.read_csv(t)).merge(with_defaults(pd.read_csv(t.with_name("timing.csv"))),
-                                                           on=CELL + ["tau"])
-                       for t in tables], ignore_index=True)
+    table = pd.concat([_with_timing(t) for t in tables], ignore_index=True)
     comp = comparison_table(table)
     detector = out.parent / "detector" / "limit.csv"
     limit = pd.read_csv(detector) if detector.exists() else None
