@@ -86,7 +86,7 @@ def test_compare_sweep_tables_and_figure_on_both_layouts(tmp_path):
 
     out = tmp_path / "compare"
     run = cli(["-m", "experiment=compare", "mc.n_trials=6", "mc.chunk_size=3", "scenario.n_landmarks=40",
-               "matcher.method=paper,consensus", "scenario.snr_db=30", f"aggregate_dir={out / 'compare'}",
+               "matcher.method=consensus", "scenario.snr_db=30", f"aggregate_dir={out / 'compare'}",
                "mc.progress=false"], tmp_path, timeout=300)
     assert run.returncode == 0, run.stderr[-2000:]
     # The exhaustive detector's limit curve is drawn when its table exists.
@@ -96,7 +96,7 @@ def test_compare_sweep_tables_and_figure_on_both_layouts(tmp_path):
     made = write_tables(out)
     assert {p.name for p in made} >= {"compare.csv", "summary.md", "success.png"}
     comp = pd.read_csv(out / "compare.csv")
-    assert set(comp.layout) == {"strip", "interleaved"} and set(comp.method) == {"paper", "consensus"}
+    assert set(comp.layout) == {"strip", "interleaved"} and set(comp.method) == {"consensus"}
     assert comp.n_trials_unrelated.eq(6).all() and comp.oracle_correct_per_trial.notna().all()
     consensus = comp[(comp.method == "consensus") & (comp.snr_db == 30)]
     assert (consensus.found_rate == 1).all() and (consensus.false_merges == 0).all()

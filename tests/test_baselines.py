@@ -29,7 +29,7 @@ def test_astroalign_baseline_is_reproducible():
     # At 20 dB its RANSAC's random draws decide the answer; they are seeded
     # from the maps, so the same maps give the same merge, and astroalign's
     # own module is left as it was.
-    for seed in range(3):
+    for seed in range(2):
         sc = mm.simulate.make_pair(60, 0.75, 20, rng=seed)
         a, b = (mm.merge_maps(sc.p, sc.q, sc.sigma, method="astroalign") for _ in range(2))
         assert np.array_equal(a.pairs, b.pairs) and np.array_equal(a.t, b.t, equal_nan=True)
