@@ -40,6 +40,7 @@ import numpy as np
 from scipy.signal import fftconvolve
 from scipy.spatial import ConvexHull, cKDTree
 
+from .alignment import rotate
 from .consensus import inside_hull
 
 #: Translation cells, in units of s.
@@ -94,19 +95,13 @@ def max_log_lr(P, Q, sigma: float, p_shared: float, density: float):
 
 def exact_log_lr(P, Q, theta, t, s, c, p_shared, hull) -> float:
     """Λ at one transform (module docstring), with p's landmarks within ``EXACT_RADIUS`` s."""
-    x = _to_p(Q, theta, t)
+    x = rotate(-theta, Q - t)
     x = x[inside_hull(hull, x)]
     if not len(x):
         return 0.0
     d2 = _near_d2(P, x, EXACT_RADIUS * s)
     mix = np.bincount(d2[0], np.exp(-d2[1] / (2 * s**2)), len(x))
     return float(len(x) * np.log(1 - p_shared) + np.sum(np.log1p(c * mix)))
-
-
-def _to_p(Q, theta, t):
-    cth, sth = np.cos(theta), np.sin(theta)
-    d = Q - t
-    return np.stack([cth * d[:, 0] + sth * d[:, 1], -sth * d[:, 0] + cth * d[:, 1]], axis=1)
 
 
 def _near_d2(P, x, radius):
@@ -118,7 +113,7 @@ def _near_d2(P, x, radius):
 def _em(P, Q, theta, t, s, c, hull):
     """EM on the mixture: responsibilities of each (i, j), then the weighted closed-form fit."""
     for _ in range(EM_ROUNDS):
-        x = _to_p(Q, theta, t)
+        x = rotate(-theta, Q - t)
         inside = np.flatnonzero(inside_hull(hull, x))
         j, d2, i = _near_d2(P, x[inside], EXACT_RADIUS * s)
         if len(j) < 2:
@@ -130,8 +125,7 @@ def _em(P, Q, theta, t, s, c, hull):
         a, b = a - wa, b - wb
         theta = float(np.arctan2(np.sum(w * (a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])),
                                  np.sum(w * (a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]))))
-        cth, sth = np.cos(theta), np.sin(theta)
-        t = wb - np.array([cth * wa[0] - sth * wa[1], sth * wa[0] + cth * wa[1]])
+        t = wb - rotate(theta, wa)
     return theta, t
 
 
@@ -165,21 +159,16 @@ def _grid_peaks(P, Q, s, c, p_shared, hull):
     log_miss = np.log(1 - p_shared)
     best_cell = np.zeros((n_theta, 2), dtype=np.int64)
     for k, theta in enumerate(thetas):
-        cth, sth = np.cos(theta), np.sin(theta)
-        rp = np.stack([cth * pc[:, 0] - sth * pc[:, 1], sth * pc[:, 0] + cth * pc[:, 1]], axis=1)
-        cell = np.rint((qc[None, :, :] - rp[:, None, :]).reshape(-1, 2) / h).astype(np.int64) + M
+        cell = np.rint((qc[None, :, :] - rotate(theta, pc)[:, None, :]).reshape(-1, 2) / h).astype(np.int64) + M
         counts = np.bincount(cell[:, 0] * side + cell[:, 1], minlength=side * side).reshape(side, side)
         value = fftconvolve(counts, kernel, mode="same")
-        back = np.stack([cth * grid_b[..., 0] + sth * grid_b[..., 1], -sth * grid_b[..., 0] + cth * grid_b[..., 1]],
-                        axis=-1).reshape(-1, 2)
-        B = inside_hull(hull_c, back).reshape(grid_b.shape[:2]).astype(float)
+        B = inside_hull(hull_c, rotate(-theta, grid_b).reshape(-1, 2)).reshape(grid_b.shape[:2]).astype(float)
         # n_inside(m) = Σ_u A(u) B(u - m), a correlation: index m + Ka + Kb of the full convolution.
         conv = np.rint(fftconvolve(A, B[::-1, ::-1], mode="full"))
         value += log_miss * conv
         best_cell[k] = np.divmod(int(np.argmax(value)), side)
-    tc = (best_cell - M) * h
-    cth, sth = np.cos(thetas), np.sin(thetas)
-    ts = qm + tc - np.stack([cth * pm[0] - sth * pm[1], sth * pm[0] + cth * pm[1]], axis=1)
+    # Back to the maps' own frames: q = R p + t with t = qm + t_centred - R pm.
+    ts = qm + (best_cell - M) * h - rotate(thetas, pm[None])[:, 0]
     exact = np.array([exact_log_lr(P, Q, th, t, s, c, p_shared, hull) for th, t in zip(thetas, ts)])
     order = np.argsort(-exact, kind="stable")[:GRID_PEAKS]
     return thetas[order], ts[order]
