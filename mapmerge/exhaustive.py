@@ -125,7 +125,7 @@ def _em(P, Q, theta, t, s, c, hull):
         a, b = a - wa, b - wb
         theta = float(np.arctan2(np.sum(w * (a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])),
                                  np.sum(w * (a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]))))
-        t = wb - rotate(theta, wa)
+        t = wb - rotate(theta, wa[None])[0]
     return theta, t
 
 
