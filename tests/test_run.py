@@ -51,8 +51,11 @@ SLOW_CELL = ["scenario.snr_db=30", "matcher.method=consensus", "matcher.taus=[ch
 
 def _start(args, cwd):
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    # As in a terminal: a shell starts background jobs (a CI script's `make test &`, nohup) with SIGINT
+    # ignored, the child would inherit that and Ctrl-C could not be simulated.
     return subprocess.Popen([sys.executable, "-m", "experiments.run", *args], cwd=cwd, env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 
 def _wait_for_chunks(cwd, count):
