@@ -221,7 +221,8 @@ def map_errors(scenario, result) -> dict:
     c = result.combined
     origin = np.select([c.origin == "fused", c.origin == "p"], [0, 1], 2)
     out = errors_batch(
-        np.asarray(scenario.p)[None], np.asarray(scenario.ids_p)[None], np.asarray(scenario.ids_q)[None], np.asarray(scenario.truth)[None],
+        np.asarray(scenario.p)[None], np.asarray(scenario.ids_p)[None], np.asarray(scenario.ids_q)[None],
+        np.asarray(scenario.truth)[None],
         np.array([scenario.theta]), np.asarray(scenario.t)[None], np.array([scenario.sigma]),
         np.array([scenario.n_common]), np.zeros(len(result.pairs), np.intp), result.pairs,
         np.array([result.n_conflicts]), np.array([result.matched]), np.array([result.theta]),
@@ -266,7 +267,7 @@ def errors_batch(P, ids_p, ids_q, truth, true_theta, true_t, sigma, n_common, pa
         "rot_err_deg": rot_err_deg + nan, "trans_err": trans_err + nan, "rmse": rmse + nan,
         "duplicates": duplicates,
         "success": matched & (rot_err_deg < SUCCESS_DEG) & (rmse < SUCCESS_RMSE_SIGMAS * sigma),
-        "transform_found": matched & (rot_err_deg < SUCCESS_DEG) & (registration <= FOUND_RMS_SIGMAS * sigma),
+        "transform_found": matched & _found(rot_err_deg, registration, sigma),
         "false_merge": matched & (n_common == 0),
     }
 
@@ -299,7 +300,12 @@ def transform_found(scenario, theta: float, t) -> bool:
     common = np.isin(scenario.ids_p, scenario.ids_q)[None]
     rms = registration_rms(np.asarray(scenario.p)[None], common, np.array([theta]), np.asarray(t, float)[None],
                            np.array([scenario.theta]), np.asarray(scenario.t)[None])[0]
-    return bool(rot_err < SUCCESS_DEG and rms <= FOUND_RMS_SIGMAS * scenario.sigma)
+    return bool(_found(rot_err, rms, scenario.sigma))
+
+
+def _found(rot_err_deg, registration, sigma):
+    """The transform-found rule (``FOUND_RMS_SIGMAS``), shared by the batch and the one-pair form."""
+    return (rot_err_deg < SUCCESS_DEG) & (registration <= FOUND_RMS_SIGMAS * sigma)
 
 
 def oracle_association(P, Q, theta, t, cov_p, cov_q, density_q: float, p_shared: float):
