@@ -5,7 +5,8 @@ between them, so triangle matching finds nothing, yet the maps still hold
 the transform: many weak coincidences add up. ``search_pairs`` finds it
 without any correspondence:
 
-1. Rotations on a grid of step ``r / R`` (``r`` the match radius,
+1. Rotations on a grid of step ``r / R`` (``r`` the pair noise: the
+   standard deviation per coordinate of p_i - x_j for a true pair, √2σ;
    ``R`` the largest distance of a p landmark from p's centroid), so a grid
    rotation is within ``r / 2`` of the true one at every landmark.
 2. At each rotation every landmark pair (i, j) votes for the translation
@@ -14,17 +15,19 @@ without any correspondence:
    hypotheses (``N_PEAKS``, at distinct rotations).
 3. Each hypothesis is refined: nearest-neighbour pairs, refitted with the
    n-point closed form, the pairing radius halved each round from the vote
-   cell's down to 2r (``REFINE_ROUNDS``), then the posterior landmark
-   association of ``consensus.associate``.
-4. Acceptance is a contrario: under "unrelated maps", each of the N q
-   landmarks mapped inside p's hull has a p landmark within ``r`` with
-   probability ``α = 1 - exp(-λ_p π r²)`` (p's landmarks a Poisson process
-   of density λ_p). With k such landmarks at the refined transform,
-   ``NFA = H · |RADII| · P(Binomial(N, α) >= k)``, H the number of
-   (rotation, translation window) hypotheses searched; the match is
-   accepted when NFA <= ``SEARCH_NFA``. Counting every landmark near a
-   partner pools evidence no single landmark carries, which is what works
-   at 10 dB, where a chance partner lies within the noise of most landmarks.
+   cell's down to 2r (``REFINE_ROUNDS``), then by EM on the mixture model of
+   ``mapmerge.exhaustive`` (every q landmark inside p's hull is, with prior
+   ``SHARED_PRIOR``, a noisy copy of some p landmark, otherwise anywhere).
+4. Acceptance is a contrario on that model's log-likelihood ratio Λ: for a
+   fixed transform, unrelated maps put q's landmarks uniformly over p's
+   hull, and ``exhaustive.null_log_tail`` bounds P(Λ >= observed) by
+   Chernoff's inequality, computed from p's own landmarks (no tuning, no
+   sampling). With H the number of (rotation, translation) hypotheses at
+   resolution r, ``NFA = H · P(Λ >= observed)``, and the best hypothesis is
+   accepted when NFA <= ``SEARCH_NFA``; its landmarks are then associated by
+   ``consensus.associate``. Λ pools the evidence of every landmark, weighed
+   by how close it lies to its partner, which no single landmark carries at
+   10 dB, where a chance partner lies within the noise of most landmarks.
 
 The search costs O(n_θ n_p n_q): meant for maps of up to a few hundred
 landmarks. On larger maps the votes use only the ``MAX_SEARCH_LANDMARKS``
@@ -35,19 +38,17 @@ which finds the transform only when those two central patches overlap:
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 from scipy.spatial import ConvexHull, cKDTree
-from scipy.stats import binom
 
-from .alignment import align_pairs, rotation
-from .consensus import associate, declared_triangles, inside_hull
+from .alignment import align_pairs, rotate, rotation
+from .consensus import SHARED_PRIOR, associate, declared_triangles, inside_hull
+from .exhaustive import em_refine, exact_log_lr, null_log_tail
 from .result import MergeBatch, build_from_parts
 from .triangles import TriangleBatch
 
-#: Match radii of the acceptance test, in units of the pair noise σ_pair (the
-#: standard deviation per coordinate of p_i - x_j for a true pair). The
-#: smallest also sets the rotation step and the translation cells.
-RADII = (1.0, 2.0)
 #: Hypotheses refined (the fullest translation windows, at distinct rotations).
 N_PEAKS = 8
 #: Nearest-neighbour refit rounds of a hypothesis before the association.
@@ -145,23 +146,17 @@ def _refine(P, Q, theta, t, r, cell, sigma):
     return al
 
 
-def _log_nfa(P, Q, theta, t, r, n_hypotheses: int) -> float:
-    """log NFA of a transform: the a contrario count test (module docstring, step 4)."""
+def _log_nfa(P, Q, hypotheses, s: float, n_hypotheses: float) -> np.ndarray:
+    """log NFA of each refined hypothesis: the a contrario mixture test (module docstring, step 4)."""
     hull = ConvexHull(P)
-    x = (Q - t) @ rotation(theta)
-    inside = inside_hull(hull, x)
-    n = int(inside.sum())
-    if n == 0:
-        return np.inf
-    dist, _ = cKDTree(P).query(x[inside])
-    density = len(P) / hull.volume
-    best = np.inf
-    for k_r in RADII:
-        radius = k_r * r
-        alpha = 1.0 - np.exp(-density * np.pi * radius**2)
-        k = int(np.sum(dist <= radius))
-        best = min(best, float(binom.logsf(k - 1, n, alpha)))
-    return float(np.log(n_hypotheses * len(RADII)) + best)
+    c = SHARED_PRIOR / ((1 - SHARED_PRIOR) * len(P) / hull.volume * 2 * np.pi * s**2)
+    log_lr, n_inside, fitted = [], [], []
+    for al in hypotheses:
+        theta, t = em_refine(P, Q, al.theta, al.t, s, c, hull)
+        fitted.append(dataclasses.replace(al, theta=theta, t=t))
+        log_lr.append(exact_log_lr(P, Q, theta, t, s, c, SHARED_PRIOR, hull))
+        n_inside.append(int(np.sum(inside_hull(hull, rotate(-theta, Q - t)))))
+    return np.log(n_hypotheses) + null_log_tail(log_lr, n_inside, P, hull, s, c, SHARED_PRIOR), fitted
 
 
 def search_pairs(P, Q, sigma: float, cov_p=None, cov_q=None):
@@ -180,26 +175,23 @@ def search_pairs(P, Q, sigma: float, cov_p=None, cov_q=None):
         Associations (empty when no hypothesis is significant).
     contested : (K,) bool ndarray
     nfa : float
-        Number of false alarms of the best hypothesis.
+        Number of false alarms of the best hypothesis (inf when none could be refined).
     """
-    r = RADII[0] * _pair_sigma(sigma, cov_p, cov_q)
+    r = _pair_sigma(sigma, cov_p, cov_q)
     thetas, ts, cell, n_hyp = _hypotheses(P, Q, r)
-    best = (np.inf, None)
-    for theta, t in zip(thetas, ts):
-        al = _refine(P, Q, float(theta), t, r, cell, sigma)
-        if al is None:
-            continue
-        log_nfa = _log_nfa(P, Q, al.theta, al.t, r, n_hyp)
-        if log_nfa < best[0]:
-            best = (log_nfa, al)
-    log_nfa, al = best
+    refined = [al for al in (_refine(P, Q, float(th), t, r, cell, sigma) for th, t in zip(thetas, ts)) if al is not None]
     empty = np.empty((0, 2), dtype=np.intp), np.empty(0, dtype=bool)
-    if al is None or log_nfa > np.log(SEARCH_NFA):
-        return *empty, float(np.exp(min(log_nfa, 700.0)))
-    pairs, contested = associate(P, Q, al, sigma, cov_p, cov_q)
+    if not refined:
+        return *empty, np.inf
+    log_nfa, refined = _log_nfa(P, Q, refined, r, n_hyp)
+    best = int(np.argmin(log_nfa))
+    nfa = float(np.exp(min(log_nfa[best], 700.0)))
+    if log_nfa[best] > np.log(SEARCH_NFA):
+        return *empty, nfa
+    pairs, contested = associate(P, Q, refined[best], sigma, cov_p, cov_q)
     if len(pairs) < 3:
-        return *empty, float(np.exp(log_nfa))
-    return pairs, contested, float(np.exp(log_nfa))
+        return *empty, nfa
+    return pairs, contested, nfa
 
 
 def search_merge(P, Q, sigma, tri_p: TriangleBatch, tri_q: TriangleBatch, cov_p=None, cov_q=None) -> MergeBatch:

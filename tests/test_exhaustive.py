@@ -29,3 +29,24 @@ def test_detector_rejects_bad_arguments():
         args = {"sigma": sc.sigma, "p_shared": 0.9, "density": 1.0, **kwargs}
         with pytest.raises(ValueError, match="sigma and density"):
             exhaustive.max_log_lr(sc.p, sc.q, **args)
+
+
+@pytest.mark.parametrize("snr", [10.0, 25.0])
+def test_null_log_tail_bounds_the_tail_of_unrelated_maps_and_is_not_vacuous(snr):
+    # Λ at a fixed transform of 60 q landmarks uniform over p's hull, 2,000 draws.
+    sc = mm.simulate.make_pair(100, 0.75, snr, rng=7)
+    hull = ConvexHull(sc.p)
+    s = np.sqrt(2) * sc.sigma
+    c = 0.5 / (0.5 * sc.density * 2 * np.pi * s**2)
+    rng = np.random.default_rng(1)
+    lo, hi = sc.p.min(axis=0), sc.p.max(axis=0)
+    values = []
+    for _ in range(2000):
+        x = rng.uniform(lo, hi, (400, 2))
+        x = x[mm.consensus.inside_hull(hull, x)][:60]
+        values.append(exhaustive.exact_log_lr(sc.p, x, 0.0, np.zeros(2), s, c, 0.5, hull))
+    for q in (0.9, 0.99):
+        level = np.quantile(values, q)
+        bound = exhaustive.null_log_tail([level], [60], sc.p, hull, s, c, 0.5)[0]
+        # An upper bound on the tail probability, and within a factor e^3 of it.
+        assert np.log(1 - q) - 0.1 <= bound <= np.log(1 - q) + 3.0

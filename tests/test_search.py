@@ -18,12 +18,13 @@ def transform_found(sc, res) -> bool:
     return err["rot_err_deg"] < 1.0 and np.sqrt(np.mean(np.sum(d**2, axis=1) / 2)) <= sc.sigma
 
 
-@pytest.mark.parametrize("snr", [15.0, 30.0])
-def test_search_finds_the_transform_where_triangles_fail(snr):
-    # Seeds 30-39 are not among the tuning or reported seeds.
+@pytest.mark.parametrize("snr, least", [(12.5, 8), (15.0, 10), (30.0, 10)])
+def test_search_finds_the_transform_where_triangles_fail(snr, least):
+    # Seeds 30-39 are not among the tuning or reported seeds. At 12.5 dB the
+    # exhaustive detector itself finds 96 % (rotation within 1° is tight there).
     found = [transform_found(sc, mm.merge_maps(sc.p, sc.q, sc.sigma, method="search"))
              for sc in (mm.simulate.make_pair(100, 0.75, snr, rng=30 + k) for k in range(10))]
-    assert sum(found) == 10
+    assert sum(found) >= least
 
 
 def test_consensus_falls_back_to_the_search_at_15_db():
