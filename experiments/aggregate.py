@@ -225,6 +225,16 @@ def aggregate(dirs, out, n_jobs: int = 1) -> dict[str, Path]:
     return paths
 
 
+def with_timing(path: Path) -> pd.DataFrame:
+    """A sweep's table with its median times (NaN where timing.csv, which git does not keep, is missing);
+    tables written before a scenario column existed read at its first-release value."""
+    table = with_defaults(pd.read_csv(path))
+    timing = path.with_name("timing.csv")
+    if not timing.exists():
+        return table.assign(median_ms_per_merge=float("nan"))
+    return table.merge(with_defaults(pd.read_csv(timing)), on=CELL + ["tau"])
+
+
 def save_table(table: pd.DataFrame, stem: Path) -> list[Path]:
     """Write ``stem.csv`` and ``stem.md`` (a Markdown table) side by side."""
     csv, md = stem.with_suffix(".csv"), stem.with_suffix(".md")

@@ -34,7 +34,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from .aggregate import CELL, markdown, save_table, with_defaults  # noqa: E402
+from .aggregate import markdown, save_table, with_timing  # noqa: E402
 from .figures import STYLE, _save  # noqa: E402
 from .paper import _call  # noqa: E402
 
@@ -106,21 +106,11 @@ def success_figure(comp: pd.DataFrame, out: Path, limit: pd.DataFrame | None = N
         return _save(fig, out, "success")
 
 
-def _with_timing(path: Path) -> pd.DataFrame:
-    """A sweep's table with its median times (NaN where timing.csv, which git does not keep, is missing);
-    tables written before a scenario column existed read at its first-release value."""
-    table = with_defaults(pd.read_csv(path))
-    timing = path.with_name("timing.csv")
-    if not timing.exists():
-        return table.assign(median_ms_per_merge=float("nan"))
-    return table.merge(with_defaults(pd.read_csv(timing)), on=CELL + ["tau"])
-
-
 def write_tables(out: Path) -> list[Path]:
     tables = sorted(out.glob("*/table.csv"))
     if not tables:
         raise FileNotFoundError(f"no */table.csv below {out}: run without --tables first")
-    table = pd.concat([_with_timing(t) for t in tables], ignore_index=True)
+    table = pd.concat([with_timing(t) for t in tables], ignore_index=True)
     comp = comparison_table(table)
     detector = out.parent / "detector" / "limit.csv"
     limit = pd.read_csv(detector) if detector.exists() else None
