@@ -2,6 +2,7 @@
 
     python -m experiments.bench            # everything (about 15 minutes on 2 cores)
     python -m experiments.bench --quick    # Fig. 3 grid at 1,000 trials per cell, 10^4 landmarks at most
+    python -m experiments.bench --only low_snr,single_call   # some sections only
 
 Measured in one run so that ratios are stable on a noisy machine:
 
@@ -17,10 +18,15 @@ Measured in one run so that ratios are stable on a noisy machine:
    every method, each in a fresh process with a time and memory limit:
    seconds and peak memory, or the limit it hit;
 4. one ``merge_maps`` call on 10-landmark maps against its two Delaunay
-   calls, and the same pairs through ``merge_batch``.
+   calls, and the same pairs through ``merge_batch``;
+5. ``consensus`` where triangles stop discriminating: median time per
+   merge on 100-landmark pairs at 10, 15 and 20 dB (related and
+   unrelated), and one 10^4-landmark pair at 15 and 20 dB.
 
-Writes ``bench.csv`` (one row per measurement) and ``bench.md`` (the
-targets next to the numbers).
+Each section writes ``results/bench/<section>.csv`` and ``.md``;
+``bench.csv`` (one row per measurement) and ``bench.md`` (the targets next
+to the numbers) collect every section's last run, so ``--only low_snr``
+reruns one section and keeps the others.
 """
 
 from __future__ import annotations
@@ -43,6 +49,9 @@ from scipy.spatial import Delaunay
 SCALE_LIMIT_S = 300
 SCALE_LIMIT_BYTES = 8 * 2**30
 SCALE_METHODS = ("paper", "cyclic", "consensus", "groth", "astroalign")
+#: SNRs and seeds of the low-SNR timing (disjoint from every tuning and reported seed).
+LOW_SNRS = (10.0, 15.0, 20.0)
+LOW_SNR_SEED = 600_000
 
 
 def _cli(args: list[str]) -> float:
@@ -84,38 +93,54 @@ def fig3_grid(trials: int, launcher: str) -> float:
                      f"aggregate_dir={tmp}/aggregate"])
 
 
-def one_size(n: int, method: str) -> dict:
-    """Merge two n-landmark maps in this process; time and peak RSS."""
+def one_size(n: int, method: str, snr_db: float = 30.0) -> dict:
+    """Merge two n-landmark maps in this process; time, peak RSS and whether the transform was found."""
     import mapmerge as mm
 
-    sc = mm.simulate.make_pair(n, 0.75, 30.0, rng=1)
+    sc = mm.simulate.make_pair(n, 0.75, snr_db, rng=1)
     start = time.perf_counter()
     res = mm.merge_maps(sc.p, sc.q, sc.sigma, method=method)
     seconds = time.perf_counter() - start
     err = mm.metrics.map_errors(sc, res)
-    return {"n_landmarks": n, "method": method, "merge_s": seconds,
+    return {"n_landmarks": n, "method": method, "snr_db": snr_db, "merge_s": seconds,
             "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6,
             "correct_pairs": err["correct_pairs"], "wrong_pairs": err["wrong_pairs"],
-            "rot_err_deg": err["rot_err_deg"], "success": err["success"], "outcome": "done"}
+            "rot_err_deg": err["rot_err_deg"], "success": err["success"],
+            "found": bool(res.matched and mm.metrics.transform_found(sc, res.theta, res.t)), "outcome": "done"}
 
 
-def scale(n: int) -> list[dict]:
+def fresh_process(n: int, method: str, snr_db: float = 30.0) -> dict:
+    """``one_size`` in a fresh process limited to ``SCALE_LIMIT_S`` and ``SCALE_LIMIT_BYTES``."""
+    def limit():
+        resource.setrlimit(resource.RLIMIT_AS, (SCALE_LIMIT_BYTES, SCALE_LIMIT_BYTES))
+    try:
+        out = subprocess.run([sys.executable, "-m", "experiments.bench", "--one-size", str(n), method, str(snr_db)],
+                             capture_output=True, text=True, timeout=SCALE_LIMIT_S, preexec_fn=limit)
+    except subprocess.TimeoutExpired:
+        return {"n_landmarks": n, "method": method, "snr_db": snr_db, "outcome": f"over {SCALE_LIMIT_S} s"}
+    if out.returncode:
+        last = (out.stderr.strip().splitlines() or ["failed"])[-1]
+        reason = "out of memory" if "MemoryError" in last or "allocate" in last else last[:80]
+        return {"n_landmarks": n, "method": method, "snr_db": snr_db, "outcome": reason}
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def low_snr_times(n_pairs: int) -> list[dict]:
+    """consensus on 100-landmark pairs (strip) at 10, 15 and 20 dB, related and unrelated: median time."""
+    import mapmerge as mm
+
     rows = []
-    for method in SCALE_METHODS:
-        def limit():
-            resource.setrlimit(resource.RLIMIT_AS, (SCALE_LIMIT_BYTES, SCALE_LIMIT_BYTES))
-        try:
-            out = subprocess.run([sys.executable, "-m", "experiments.bench", "--one-size", str(n), method],
-                                 capture_output=True, text=True, timeout=SCALE_LIMIT_S, preexec_fn=limit)
-        except subprocess.TimeoutExpired:
-            rows.append({"n_landmarks": n, "method": method, "outcome": f"over {SCALE_LIMIT_S} s"})
-            continue
-        if out.returncode:
-            last = (out.stderr.strip().splitlines() or ["failed"])[-1]
-            reason = "out of memory" if "MemoryError" in last or "allocate" in last else last[:80]
-            rows.append({"n_landmarks": n, "method": method, "outcome": reason})
-        else:
-            rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
+    for snr in LOW_SNRS:
+        for unrelated in (False, True):
+            times, found = [], 0
+            for k in range(n_pairs):
+                sc = mm.simulate.make_pair(100, 0.75, snr, rng=LOW_SNR_SEED + k, unrelated=unrelated)
+                start = time.perf_counter()
+                res = mm.merge_maps(sc.p, sc.q, sc.sigma)
+                times.append(time.perf_counter() - start)
+                found += bool(res.matched and (unrelated or mm.metrics.transform_found(sc, res.theta, res.t)))
+            rows.append({"n_landmarks": 100, "method": "consensus", "snr_db": snr, "unrelated": unrelated,
+                         "pairs": n_pairs, "median_s": float(np.median(times)), "matched_or_found": found / n_pairs})
     return rows
 
 
@@ -143,50 +168,41 @@ def single_call(n_pairs: int = 2000, repeats: int = 5) -> dict:
             "batch_ratio": per_batch / floor}
 
 
-def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description="Speed and scale benchmarks.")
-    parser.add_argument("--out", default="results")
-    parser.add_argument("--quick", action="store_true", help="Fig. 3 grid at 1,000 trials per cell; 10^4 landmarks")
-    parser.add_argument("--one-size", nargs=2, help=argparse.SUPPRESS)
-    args = parser.parse_args(argv)
-    if args.one_size:
-        print(json.dumps(one_size(int(args.one_size[0]), args.one_size[1])))
-        return
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+def section_per_trial(quick: bool) -> tuple[list[dict], list[str]]:
+    md = ["## Per-trial cost of a Fig. 3 cell through the CLI (target: <= 2x its three Delaunay calls)", "",
+          "`python -m experiments.run experiment=fig3 scenario.n_landmarks=N scenario.overlap=0.75 "
+          "scenario.snr_db=20 mc.n_jobs=1 mc.n_trials=M+100` minus the same at 100 trials, over M.", "",
+          "| landmarks | per trial (ms) | floor: 3 Delaunay calls (ms) | ratio | target met |", "|---:|---:|---:|---:|:---|"]
     rows = []
-    md = ["# Benchmarks", "", f"Machine: {os.cpu_count()} cores. Command: "
-          f"`python -m experiments.bench{' --quick' if args.quick else ''}`. Every time is end to end as a user "
-          "runs it; each ratio is taken within one run.", ""]
-
-    md += ["## Per-trial cost of a Fig. 3 cell through the CLI (target: <= 2x its three Delaunay calls)", "",
-           "`python -m experiments.run experiment=fig3 scenario.n_landmarks=N scenario.overlap=0.75 "
-           "scenario.snr_db=20 mc.n_jobs=1 mc.n_trials=M+100` minus the same at 100 trials, over M.", "",
-           "| landmarks | per trial (ms) | floor: 3 Delaunay calls (ms) | ratio | target met |", "|---:|---:|---:|---:|:---|"]
     for n in (10, 20):
-        r = per_trial_cli(n, 5000 if args.quick else 20000)
+        r = per_trial_cli(n, 5000 if quick else 20000)
         rows.append({"benchmark": "per_trial_cli", **r})
         md.append(f"| {n} | {1e3 * r['trial_s']:.3f} | {1e3 * r['floor_s']:.3f} | {r['ratio']:.2f} | "
                   f"{'yes' if r['ratio'] <= 2 else 'no'} |")
+    return rows, md
 
-    trials = 1000 if args.quick else 10_000
+
+def section_fig3_grid(quick: bool) -> tuple[list[dict], list[str]]:
+    trials = 1000 if quick else 10_000
     grid = {launcher: fig3_grid(trials, launcher) for launcher in ("basic", "joblib")}
-    for launcher, seconds in grid.items():
-        rows.append({"benchmark": "fig3_grid", "launcher": launcher, "trials_per_cell": trials, "seconds": seconds})
-    md += ["", f"## Full Fig. 3 grid, 36 cells x {trials:,} trials, whole CLI on 2 workers (target: <= 40 s at "
-           "10,000 trials)", "", "| launcher | command | seconds |", "|---|---|---:|",
-           f"| joblib, cells in parallel (the preset's) | `python -m experiments.run -m experiment=fig3` | "
-           f"{grid['joblib']:.1f} |",
-           f"| basic, chunks in parallel | `... hydra/launcher=basic mc.n_jobs=2` | {grid['basic']:.1f} |"]
+    rows = [{"benchmark": "fig3_grid", "launcher": launcher, "trials_per_cell": trials, "seconds": seconds}
+            for launcher, seconds in grid.items()]
+    md = [f"## Full Fig. 3 grid, 36 cells x {trials:,} trials, whole CLI on 2 workers (target: <= 40 s at "
+          "10,000 trials)", "", "| launcher | command | seconds |", "|---|---|---:|",
+          f"| joblib, cells in parallel (the preset's) | `python -m experiments.run -m experiment=fig3` | "
+          f"{grid['joblib']:.1f} |",
+          f"| basic, chunks in parallel | `... hydra/launcher=basic mc.n_jobs=2` | {grid['basic']:.1f} |"]
+    return rows, md
 
-    n_big = 10_000 if args.quick else 100_000
-    big = scale(n_big)
-    rows += [{"benchmark": "scale", **r} for r in big]
-    md += ["", f"## merge_maps on 10^{int(np.log10(n_big))} landmarks per map, 75 % overlap, 30 dB "
-           f"(target 10^5: <= 10 s and <= 2 GB, every method)", "",
-           f"Each method in a fresh process, limited to {SCALE_LIMIT_S} s and {SCALE_LIMIT_BYTES / 2**30:.0f} GB.", "",
-           "| method | seconds | peak RSS (GB) | correct pairs | wrong pairs | rotation error (deg) | outcome |",
-           "|---|---:|---:|---:|---:|---:|---|"]
+
+def section_scale(quick: bool) -> tuple[list[dict], list[str]]:
+    n_big = 10_000 if quick else 100_000
+    big = [fresh_process(n_big, method) for method in SCALE_METHODS]
+    md = [f"## merge_maps on 10^{int(np.log10(n_big))} landmarks per map, 75 % overlap, 30 dB "
+          f"(target 10^5: <= 10 s and <= 2 GB, every method)", "",
+          f"Each method in a fresh process, limited to {SCALE_LIMIT_S} s and {SCALE_LIMIT_BYTES / 2**30:.0f} GB.", "",
+          "| method | seconds | peak RSS (GB) | correct pairs | wrong pairs | rotation error (deg) | outcome |",
+          "|---|---:|---:|---:|---:|---:|---|"]
     for r in big:
         if r["outcome"] == "done":
             md.append(f"| {r['method']} | {r['merge_s']:.1f} | {r['peak_rss_gb']:.2f} | {r['correct_pairs']:,} | "
@@ -194,17 +210,80 @@ def main(argv=None) -> None:
                       f"{'target met' if r['merge_s'] <= 10 and r['peak_rss_gb'] <= 2 else 'target not met'} |")
         else:
             md.append(f"| {r['method']} | | | | | | {r['outcome']} |")
+    return [{"benchmark": "scale", **r} for r in big], md
 
+
+def section_single_call(quick: bool) -> tuple[list[dict], list[str]]:
     one = single_call()
-    rows.append({"benchmark": "single_call", **one})
-    md += ["", "## One merge_maps call at 10 landmarks, method paper (target: <= 3x its two Delaunay calls)", "",
-           "| what | per map pair (ms) | ratio to the floor |", "|---|---:|---:|",
-           f"| `merge_maps(p, q, sigma, method='paper')` | {1e3 * one['call_s']:.3f} | {one['ratio']:.2f} |",
-           f"| `merge_batch(P, Q, sigma, method='paper')` on 2,000 pairs | {1e3 * one['batch_s']:.3f} | "
-           f"{one['batch_ratio']:.2f} |",
-           f"| floor: 2 Delaunay calls | {1e3 * one['floor_s']:.3f} | 1 |"]
-    pd.DataFrame(rows).to_csv(out / "bench.csv", index=False, float_format="%.6g")
-    (out / "bench.md").write_text("\n".join(md) + "\n")
+    md = ["## One merge_maps call at 10 landmarks, method paper (target: <= 3x its two Delaunay calls)", "",
+          "| what | per map pair (ms) | ratio to the floor |", "|---|---:|---:|",
+          f"| `merge_maps(p, q, sigma, method='paper')` | {1e3 * one['call_s']:.3f} | {one['ratio']:.2f} |",
+          f"| `merge_batch(P, Q, sigma, method='paper')` on 2,000 pairs | {1e3 * one['batch_s']:.3f} | "
+          f"{one['batch_ratio']:.2f} |",
+          f"| floor: 2 Delaunay calls | {1e3 * one['floor_s']:.3f} | 1 |"]
+    return [{"benchmark": "single_call", **one}], md
+
+
+def section_low_snr(quick: bool) -> tuple[list[dict], list[str]]:
+    pairs = 10 if quick else 40
+    rows = [{"benchmark": "low_snr", **r} for r in low_snr_times(pairs)]
+    md = ["## consensus where triangles stop discriminating (target: median <= 150 ms at 100 landmarks, "
+          "<= 10 s at 10^4)", "",
+          f"`merge_maps(p, q, sigma)` (method consensus: triangles, then the global search when they find "
+          f"nothing) on {pairs} related and {pairs} unrelated 100-landmark pairs per SNR (strip layout, seeds "
+          f"{LOW_SNR_SEED}+k), one process; and on one 10^4-landmark pair in a fresh process.", "",
+          "| landmarks | SNR (dB) | pairs | median per merge (ms) | transform found / false merges | target met |",
+          "|---:|---:|---|---:|---|:---|"]
+    for r in rows:
+        kind = "unrelated" if r["unrelated"] else "related"
+        outcome = f"{r['matched_or_found']:.0%} merged" if r["unrelated"] else f"{r['matched_or_found']:.0%} found"
+        md.append(f"| 100 | {r['snr_db']:g} | {r['pairs']} {kind} | {1e3 * r['median_s']:.0f} | {outcome} | "
+                  f"{'yes' if r['median_s'] <= 0.15 else 'no'} |")
+    for snr in (15.0, 20.0):
+        r = fresh_process(10_000, "consensus", snr)
+        rows.append({"benchmark": "low_snr", **r})
+        if r["outcome"] == "done":
+            md.append(f"| 10,000 | {snr:g} | 1 related | {1e3 * r['merge_s']:.0f} | "
+                      f"{'found' if r['found'] else 'not found'} | {'yes' if r['merge_s'] <= 10 else 'no'} |")
+        else:
+            md.append(f"| 10,000 | {snr:g} | 1 related | | {r['outcome']} | no |")
+    return rows, md
+
+
+#: The benchmark sections in the order of bench.md; ``--only`` reruns some and keeps the others' last results.
+SECTIONS = {"per_trial": section_per_trial, "fig3_grid": section_fig3_grid, "scale": section_scale,
+            "single_call": section_single_call, "low_snr": section_low_snr}
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description="Speed and scale benchmarks.")
+    parser.add_argument("--out", default="results")
+    parser.add_argument("--quick", action="store_true", help="Fig. 3 grid at 1,000 trials per cell; 10^4 landmarks")
+    parser.add_argument("--only", help=f"comma-separated sections to rerun, of {', '.join(SECTIONS)}")
+    parser.add_argument("--one-size", nargs="+", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.one_size:
+        n, method, *snr = args.one_size
+        print(json.dumps(one_size(int(n), method, *map(float, snr))))
+        return
+    only = list(SECTIONS) if args.only is None else args.only.split(",")
+    unknown = sorted(set(only) - set(SECTIONS))
+    if unknown:
+        raise SystemExit(f"--only: unknown section(s) {unknown}; allowed: {', '.join(SECTIONS)}")
+    out = Path(args.out)
+    parts = out / "bench"
+    parts.mkdir(parents=True, exist_ok=True)
+    for name in only:
+        rows, md = SECTIONS[name](args.quick)
+        pd.DataFrame(rows).to_csv(parts / f"{name}.csv", index=False, float_format="%.6g")
+        (parts / f"{name}.md").write_text("\n".join(md) + "\n")
+    header = ["# Benchmarks", "", f"Machine: {os.cpu_count()} cores. Command: `python -m experiments.bench` "
+              "(each section below is rewritten by `--only SECTION`). Every time is end to end as a user runs it; "
+              "each ratio is taken within one section's run.", ""]
+    done = [name for name in SECTIONS if (parts / f"{name}.md").exists()]
+    (out / "bench.md").write_text("\n".join(header) + "\n" + "\n".join((parts / f"{n}.md").read_text() for n in done))
+    pd.concat([pd.read_csv(parts / f"{n}.csv") for n in done], ignore_index=True).to_csv(
+        out / "bench.csv", index=False, float_format="%.6g")
     print((out / "bench.md").read_text())
 
 

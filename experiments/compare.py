@@ -1,25 +1,36 @@
 """Compare matchers side by side on the same trials (results/compare/).
 
-    python -m experiments.compare            # presets compare (+ compare_astroalign if installed)
-    python -m experiments.compare --tables   # only rebuild tables and figure from results/compare
+    python -m experiments.compare                    # every preset below, then tables and figure
+    python -m experiments.compare --presets compare_search   # some presets only (the others' tables stay)
+    python -m experiments.compare --tables           # only rebuild tables and figure from results/compare
 
-Runs the ``compare`` sweep (paper, cyclic, consensus and Groth's voting on
-the paper's Fig. 1 scenario, 100 landmarks and 75 % common, in both
-layouts: the paper's strip and the interleaved layout where each agent
-detects an overlap landmark with probability 0.9; 0-40 dB in 2.5 dB steps,
-300 related and 300 unrelated map pairs per cell), ``compare_search`` (the
-global search on the same trials) and, when astroalign is installed,
-``compare_astroalign``; then writes, per scenario, ``compare.md`` /
-``compare.csv``: method x SNR with triangle detection (TP / common, and the
-part declared by the GLRT test alone) and false positives per trial,
-correct and wrong landmark pairs per trial next to the oracle association's
-(the best any matcher could do: it knows the true transform), merge success
-(rotation error < 1° and combined-map RMSE < 2σ), transform found (rotation
-< 1° and registration error <= σ), false merges on unrelated pairs and the
-median time per merge; and ``success.png`` / ``.pdf``: transform found and
-wrong pairs vs SNR per method and layout, with the oracle association's
-wrong pairs and, when ``results/detector/limit.csv`` exists (``python -m
-experiments.detector``), the exhaustive ML detector's transform-found curve.
+On the paper's Fig. 1 scenario (100 landmarks, 75 % common) in both layouts
+(the paper's strip, and the interleaved layout where each agent detects an
+overlap landmark with probability 0.9), 0-40 dB in 2.5 dB steps, related
+and unrelated map pairs, with the oracle association on every trial, runs
+the sweeps ``compare`` (paper, cyclic and Groth's voting; 300 pairs per
+cell), ``compare_consensus`` (consensus, 1,000 pairs per cell: the
+low-SNR targets are judged on it), ``compare_search`` (the global search
+alone, 300) and, when astroalign is installed, ``compare_astroalign``. A
+cell's seeds depend on the scenario only, so every method sees the same
+maps. Then writes:
+
+* ``compare.md`` / ``.csv``: method x SNR with triangle detection (TP /
+  common, and the part declared by the GLRT test alone) and false
+  positives per trial, correct and wrong landmark pairs per trial next to
+  the oracle association's (the best any matcher could do: it knows the
+  true transform), merge success (rotation error < 1° and combined-map RMSE
+  < 2σ), transform found (rotation < 1° and registration error <= σ),
+  false merges on unrelated pairs and the median time per merge;
+* ``summary.md``: the same at 10-40 dB in 10 dB steps;
+* ``found.md`` / ``.csv``: transform found with its 95 % Wilson interval
+  and false merges, every SNR;
+* ``crossing.md`` / ``.csv`` (when ``results/detector/limit.csv`` exists,
+  ``python -m experiments.detector``): the SNR at which each method and
+  the exhaustive ML detector find 90 % of the transforms;
+* ``success.png`` / ``.pdf``: transform found and wrong pairs vs SNR per
+  method and layout, with the oracle association's wrong pairs and the
+  detector's transform-found curve.
 """
 
 from __future__ import annotations
@@ -32,12 +43,16 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
+from scipy.stats import norm  # noqa: E402
 
 from .aggregate import markdown, save_table, with_timing  # noqa: E402
 from .figures import STYLE, _save  # noqa: E402
 from .paper import _call  # noqa: E402
 
+#: The sweeps of the experiment: each writes ``<out>/<preset>/table.csv``.
+PRESETS = ("compare", "compare_consensus", "compare_search", "compare_astroalign")
 KEYS = ["n_landmarks", "overlap", "layout", "snr_db", "method", "tau"]
 
 
@@ -82,7 +97,7 @@ def success_figure(comp: pd.DataFrame, out: Path, limit: pd.DataFrame | None = N
                          label="limit: exhaustive ML detector (true σ)")
             if "oracle_wrong_per_trial" in part:
                 # Same trials for every method: the oracle's curve is one.
-                oracle = part.groupby("snr_db").oracle_wrong_per_trial.first()
+                oracle = part.sort_values("n_trials", ascending=False).groupby("snr_db").oracle_wrong_per_trial.first()
                 bottom.plot(oracle.index, oracle.to_numpy(), color="k", lw=1.4, ls="-.",
                             label="limit: oracle association (true transform)")
             top.set_title(f"{layout} layout")
@@ -114,7 +129,70 @@ def write_tables(out: Path) -> list[Path]:
     comp = comparison_table(table)
     detector = out.parent / "detector" / "limit.csv"
     limit = pd.read_csv(detector) if detector.exists() else None
-    return [*save_table(comp, out / "compare"), summary(comp, out / "summary.md"), *success_figure(comp, out, limit)]
+    paths = [*save_table(comp, out / "compare"), summary(comp, out / "summary.md"), *success_figure(comp, out, limit)]
+    paths += save_table(found_table(comp), out / "found")
+    if limit is not None:
+        paths += save_table(crossing(comp, limit), out / "crossing")
+    return paths
+
+
+def wilson(successes, n, level: float = 0.95) -> tuple[np.ndarray, np.ndarray]:
+    """Wilson score interval of a binomial proportion."""
+    successes, n = np.asarray(successes, float), np.asarray(n, float)
+    z = norm.ppf(0.5 + level / 2)
+    p = successes / n
+    centre = (p + z**2 / (2 * n)) / (1 + z**2 / n)
+    half = z * np.sqrt(p * (1 - p) / n + z**2 / (4 * n**2)) / (1 + z**2 / n)
+    return centre - half, centre + half
+
+
+def found_table(comp: pd.DataFrame) -> pd.DataFrame:
+    """``found.md``: transform found with its 95 % Wilson interval and false merges, per method with a
+    usable τ rule, layout and SNR (the low-SNR targets)."""
+    s = comp[comp.tau != "oracle"].copy()
+    s["found_low"], s["found_high"] = wilson(np.round(s.found_rate * s.n_trials), s.n_trials)
+    names = {"method": "method", "layout": "layout", "snr_db": "SNR", "n_trials": "pairs",
+             "found_rate": "transform found", "found_low": "95 % low", "found_high": "95 % high",
+             "false_merges": "false merges", "n_trials_unrelated": "unrelated pairs",
+             "median_ms_per_merge": "ms per merge"}
+    s["order"] = s.method.map({m: k for k, m in enumerate(METHOD_ORDER)})
+    s = s.sort_values(["order", "layout", "snr_db"], key=lambda c: c != "strip" if c.name == "layout" else c)
+    return s[[c for c in names if c in s]].rename(columns=names)
+
+
+#: The transform-found rate whose SNR is compared with the exhaustive detector's.
+CROSSING_LEVEL = 0.9
+
+
+def crossing_snr(snr, rate, level: float = CROSSING_LEVEL) -> float:
+    """First SNR where ``rate`` reaches ``level``, linear between grid points (nan if never)."""
+    snr, rate = np.asarray(snr, float), np.asarray(rate, float)
+    above = np.flatnonzero(rate >= level)
+    if not len(above):
+        return float("nan")
+    k = above[0]
+    if k == 0:
+        return float(snr[0])
+    return float(snr[k - 1] + (level - rate[k - 1]) * (snr[k] - snr[k - 1]) / (rate[k] - rate[k - 1]))
+
+
+def crossing(comp: pd.DataFrame, limit: pd.DataFrame) -> pd.DataFrame:
+    """``crossing.md``: per layout and method, the SNR at which ``CROSSING_LEVEL`` of the transforms are
+    found, interpolated linearly between grid SNRs, and how far it lies behind the exhaustive detector's."""
+    rows = []
+    usable = comp[comp.tau != "oracle"]
+    for layout, lim in limit.groupby("layout", sort=False):
+        detector = crossing_snr(lim.sort_values("snr_db").snr_db, lim.sort_values("snr_db").found_rate)
+        rows.append({"layout": layout, "method": "limit: exhaustive detector", "snr_db": detector,
+                     "behind_detector_db": 0.0})
+        for (method, tau), g in usable[usable.layout == layout].groupby(["method", "tau"], sort=False):
+            g = g.sort_values("snr_db")
+            at = crossing_snr(g.snr_db, g.found_rate)
+            rows.append({"layout": layout, "method": method, "tau": tau, "snr_db": at,
+                         "behind_detector_db": at - detector})
+    names = {"layout": "layout", "method": "method", "tau": "tau", "snr_db": f"SNR at {CROSSING_LEVEL:.0%} found",
+             "behind_detector_db": "behind the detector (dB)"}
+    return pd.DataFrame(rows)[list(names)].rename(columns=names)
 
 
 #: Methods in the order the summary lists them: the paper, its variants, the baselines.
@@ -144,13 +222,16 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description="Compare matchers side by side.")
     parser.add_argument("--out", default="results/compare")
     parser.add_argument("--tables", action="store_true", help="only rebuild tables and figure")
+    parser.add_argument("--presets", help=f"comma-separated presets to run (default: {', '.join(PRESETS)})")
     parser.add_argument("overrides", nargs="*", help="extra Hydra overrides for every sweep")
     args = parser.parse_args(argv)
     out = Path(args.out)
+    presets = list(PRESETS) if args.presets is None else args.presets.split(",")
+    if set(presets) - set(PRESETS):
+        raise SystemExit(f"--presets: unknown {sorted(set(presets) - set(PRESETS))}; allowed: {', '.join(PRESETS)}")
+    if "compare_astroalign" in presets and importlib.util.find_spec("astroalign") is None:
+        presets.remove("compare_astroalign")  # the optional extra [baselines] is not installed
     if not args.tables:
-        presets = ["compare", "compare_search"]
-        if importlib.util.find_spec("astroalign") is not None:
-            presets.append("compare_astroalign")
         for preset in presets:
             _call(["experiments.run", "-m", f"experiment={preset}", f"aggregate_dir={out / preset}",
                    "mc.progress=false", *args.overrides])

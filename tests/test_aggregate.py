@@ -118,3 +118,32 @@ def test_realistic_sweep_summary_against_the_oracle(tmp_path):
     s = summary(pd.read_csv(out / "table.csv"))
     assert len(s) == 1 and s["unrelated pairs"].iloc[0] == 4 and s["false merges"].iloc[0] == 0
     assert s["transform found"].iloc[0] == 1 and abs(s["correct vs oracle"].iloc[0] - 1) < 0.05
+
+
+def test_compare_consensus_found_table_and_crossing(tmp_path):
+    """A small version of compare_consensus: consensus falls back to the global search at low SNR."""
+    from experiments.aggregate import with_timing
+    from experiments.compare import comparison_table, crossing, found_table
+
+    out = tmp_path / "compare_consensus"
+    run = cli(["-m", "experiment=compare_consensus", "mc.n_trials=4", "mc.chunk_size=2", "scenario.layout=strip",
+               "scenario.snr_db=12.5,30", f"aggregate_dir={out}", "mc.progress=false"], tmp_path, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    comp = comparison_table(with_timing(out / "table.csv"))
+    f = found_table(comp)
+    assert list(f.SNR) == [12.5, 30.0] and f["unrelated pairs"].eq(4).all() and f["false merges"].eq(0).all()
+    assert f["transform found"].iloc[1] == 1 and (f["95 % low"] <= f["transform found"]).all()
+    assert (f["ms per merge"] > 0).all() and comp.oracle_correct_per_trial.notna().all()
+    limit = pd.DataFrame({"layout": "strip", "snr_db": [10.0, 12.5, 15.0], "found_rate": [0.5, 0.86, 0.98]})
+    c = crossing(comp, limit)
+    # The detector's 90 % by linear interpolation: 12.5 + 2.5 (0.9 - 0.86) / (0.98 - 0.86).
+    assert np.isclose(c.iloc[0, 3], 12.5 + 2.5 / 3) and c.method.tolist() == ["limit: exhaustive detector", "consensus"]
+
+
+def test_wilson_interval_matches_the_textbook_values():
+    from experiments.compare import wilson
+
+    low, high = wilson(np.array([0.0, 500.0]), np.array([1000.0, 1000.0]))
+    # 0 of 1,000: the upper bound is z²/(n + z²) = 0.00383; 50 %: 0.469-0.531.
+    assert np.allclose([low[0], high[0]], [0.0, 0.003827], atol=1e-5)
+    assert np.allclose([low[1], high[1]], [0.469, 0.531], atol=1e-3)

@@ -51,10 +51,3 @@ def test_search_with_isotropic_covariances_equals_sigma():
     b = search.search_pairs(sc.p, sc.q, sc.sigma)
     assert np.array_equal(a[0], b[0]) and np.isclose(a[2], b[2])
     assert np.mean(sc.ids_p[a[0][:, 0]] == sc.ids_q[a[0][:, 1]]) > 0.8
-
-
-def test_search_curve_cell_counts_found_and_false_merges():
-    from experiments.search_curve import cell
-
-    row = cell("search", 20.0, 2)
-    assert row["transform_found"] == 1.0 and row["false_merges"] == 0 and row["median_ms"] > 0
