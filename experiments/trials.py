@@ -135,12 +135,17 @@ def run_chunk(root_seed: int, scenario: dict, matcher: dict, start: int, stop: i
     return tuple(pd.concat([p[k] for p in parts], ignore_index=True) for k in (0, 1))
 
 
+def matcher_covariances(sc, matcher: dict) -> dict:
+    """The landmarks' covariances as ``merge_at`` keywords when the matcher uses them (``use_cov``)."""
+    return {"cov_p": sc.cov_p, "cov_q": sc.cov_q} if matcher.get("use_cov") else {}
+
+
 def _run_slice(root_seed: int, scenario: dict, matcher: dict, ks: np.ndarray):
     sc, dataset = make_trials(root_seed, scenario, ks)
     B = len(sc)
     method = get_method(matcher["method"])
     taus = list(matcher["taus"]) if method.uses_tau else ["none"]
-    covariances = {"cov_p": sc.cov_p, "cov_q": sc.cov_q} if matcher.get("use_cov") else {}
+    covariances = matcher_covariances(sc, matcher)
     first_pose = None if dataset is None else (dataset.theta_first_pose, dataset.t_first_pose[None])
     oracle = metrics.oracle_pairs_batch(sc) if matcher.get("oracle") and dataset is None else {}
 

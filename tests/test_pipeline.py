@@ -117,6 +117,21 @@ def test_harness_on_realistic_maps_is_the_library_with_covariances_and_the_oracl
                              "anisotropy": 0.0}) == harness.cell_key(_scenario(40, 0.75, 25.0))
 
 
+def test_example_merged_map_uses_the_covariances_when_the_matcher_does():
+    """The example tables (the figures' and the Victoria Park table's fused rows) merge as the trials do."""
+    from experiments.examples import example_tables
+
+    extra = {"layout": "interleaved", "p_detect": 0.8, "clutter": 0.0, "anisotropy": 2.0}
+    scenario = {**_scenario(40, 0.75, 25.0), **extra}
+    matcher = {"method": "consensus", "objective": "lr", "taus": ["chi2:0.01"], "use_cov": True}
+    merged = example_tables(4, scenario, matcher, [0])["example_landmarks"].query("kind == 'merged'")
+    sc = mm.simulate.make_pair(40, 0.75, 25.0, rng=trial_seeds(4, scenario, [0])[0], **extra)
+    with_cov = mm.merge_maps(sc.p, sc.q, sc.sigma, cov_p=sc.cov_p, cov_q=sc.cov_q).combined.points
+    without = mm.merge_maps(sc.p, sc.q, sc.sigma).combined.points
+    assert np.array_equal(merged[["x", "y"]].to_numpy(), with_cov)
+    assert not np.array_equal(with_cov, without)  # information weighting moves the fused rows
+
+
 def test_chunking_does_not_change_results():
     scenario = _scenario(15, 0.75, 10.0)
     matcher = {"method": "cyclic", "objective": "lr", "taus": ["oracle", "chi2:0.01"]}
