@@ -152,8 +152,9 @@ def null_log_tail(log_lr, n_inside, P, hull, s, c, p_shared) -> np.ndarray:
     x, weight = x[keep], weight[keep]
     j, d2, _ = _near_d2(P, x, EXACT_RADIUS * s)
     g = np.log1p(c * np.bincount(j, np.exp(-d2 / (2 * s**2)), len(x)))
-    # A node lies in the discs of `cover` centres: its weight is shared among them.
-    cover = cKDTree(centres).query_ball_point(x, EXACT_RADIUS * s * (1 + 1e-9), return_length=True)
+    # A node lies in the discs of `cover` landmarks: its weight is shared among them (a partition of
+    # unity over every landmark's disc, so a subsample of centres, scaled up, is unbiased).
+    cover = cKDTree(P).query_ball_point(x, EXACT_RADIUS * s * (1 + 1e-9), return_length=True)
     weight = weight / (cover * hull.volume)
     # Any λ gives a bound: a coarse grid only loosens the best one slightly.
     lam = np.geomspace(0.02, 20.0, CHERNOFF_POINTS)

@@ -50,3 +50,16 @@ def test_null_log_tail_bounds_the_tail_of_unrelated_maps_and_is_not_vacuous(snr)
         bound = exhaustive.null_log_tail([level], [60], sc.p, hull, s, c, 0.5)[0]
         # An upper bound on the tail probability, and within a factor e^3 of it.
         assert np.log(1 - q) - 0.1 <= bound <= np.log(1 - q) + 3.0
+
+
+def test_null_log_tail_on_a_subsample_of_landmark_discs_matches_every_disc(monkeypatch):
+    # 1,200 landmarks: the quadrature uses every third disc, scaled up; every disc gives the reference.
+    sc = mm.simulate.make_pair(1200, 0.75, 15.0, rng=2)
+    hull = ConvexHull(sc.p)
+    s = np.sqrt(2) * sc.sigma
+    c = 0.5 / (0.5 * sc.density * 2 * np.pi * s**2)
+    levels, inside = [100.0, 400.0, 900.0], [900, 900, 900]
+    sub = exhaustive.null_log_tail(levels, inside, sc.p, hull, s, c, 0.5)
+    monkeypatch.setattr(exhaustive, "QUAD_MAX_CENTRES", 10_000)
+    full = exhaustive.null_log_tail(levels, inside, sc.p, hull, s, c, 0.5)
+    assert np.all(full < -10) and np.allclose(sub, full, rtol=0.05)

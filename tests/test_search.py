@@ -51,3 +51,17 @@ def test_search_with_isotropic_covariances_equals_sigma():
     b = search.search_pairs(sc.p, sc.q, sc.sigma)
     assert np.array_equal(a[0], b[0]) and np.isclose(a[2], b[2])
     assert np.mean(sc.ids_p[a[0][:, 0]] == sc.ids_q[a[0][:, 1]]) > 0.8
+
+
+def test_search_on_large_maps_votes_with_thinned_maps_and_finds_the_transform():
+    # 2,000 landmarks per map vote with about 300 each; 15 dB, where triangles fail.
+    sc = mm.simulate.make_pair(2000, 0.75, 15.0, rng=3)
+    thinned = search._thinned(sc.p, search.MAX_SEARCH_LANDMARKS)
+    assert 200 <= len(thinned) <= 450
+    # The choice does not depend on the frame: rotated and shifted, the same landmarks are chosen.
+    moved = search._thinned(rotate(1.0, sc.p) + [5.0, -3.0], search.MAX_SEARCH_LANDMARKS)
+    assert np.allclose(rotate(1.0, thinned) + [5.0, -3.0], moved)
+    res = mm.merge_maps(sc.p, sc.q, sc.sigma, method="search")
+    assert transform_found(sc, res)
+    unrelated = mm.simulate.make_pair(2000, 0.75, 15.0, rng=3, unrelated=True)
+    assert not mm.merge_maps(unrelated.p, unrelated.q, unrelated.sigma, method="search").matched
