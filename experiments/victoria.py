@@ -8,8 +8,10 @@ the ``slam`` source is skipped when GTSAM is not installed, ``astroalign``
 when astroalign is not) and writes ``table.csv`` / ``table.md``: trees per
 agent, common trees, correspondences found (correct / wrong), rotation and
 translation error, combined-map RMSE against the reference tree map, and
-time per merge; and ``victoria_park.png`` / ``.pdf``: both agents' maps, the
-merged map and the reference trees at the default cut.
+time per merge; ``victoria_park.png`` / ``.pdf``: both agents' maps, the
+merged map and the reference trees at the default cut; and, with the slam
+source, ``solver_check.md``: the same SLAM solver on the whole drive against
+the reference tree map.
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ import pandas as pd  # noqa: E402
 
 from scipy.spatial import ConvexHull  # noqa: E402
 
-from mapmerge.datasets import DEFAULT_CUT, fit_error, map_quality, victoria_park  # noqa: E402
+from mapmerge.datasets import DEFAULT_CUT, fit_error, load_log, map_quality, slam_map, victoria_park  # noqa: E402
 from mapmerge.metrics import oracle_association  # noqa: E402
 
 from .aggregate import find_runs, save_table  # noqa: E402
@@ -135,10 +137,20 @@ def figure(examples: pd.DataFrame, out: Path, cut: int = DEFAULT_CUT, method: st
         return _save(fig, out, "victoria_park")
 
 
+def solver_check() -> pd.DataFrame:
+    """The SLAM solver on the whole drive against the reference tree map (rigid fit by tree id)."""
+    ids, points, _ = slam_map()
+    return pd.DataFrame([{"poses": len(load_log().pose_ids), "trees": len(ids),
+                          **fit_error(points, load_log().trees[ids])}])
+
+
 def write(sweep: Path, out: Path) -> list[Path]:
     trials, examples = load_runs(sweep)
     out.mkdir(parents=True, exist_ok=True)
-    return [*save_table(table(trials, examples), out / "table"), *figure(examples, out)]
+    paths = [*save_table(table(trials, examples), out / "table"), *figure(examples, out)]
+    if (trials.source == "slam").any():
+        paths += save_table(solver_check(), out / "solver_check")
+    return paths
 
 
 def main(argv=None) -> None:

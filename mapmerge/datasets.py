@@ -299,10 +299,8 @@ def victoria_park(cut: int = DEFAULT_CUT, source: str = "reference", path=None) 
         cov_p = rot_p.T @ cov_p @ rot_p
         cov_q = rot_q.T @ cov_q @ rot_q
     else:
-        from ._slam import agent_map
-
-        ids_p, p, cov_p = agent_map(log, 0, cut)
-        ids_q, q, cov_q = agent_map(log, cut, len(log.pose_ids))
+        ids_p, p, cov_p = slam_map(0, cut, path)
+        ids_q, q, cov_q = slam_map(cut, None, path)
     if len(ids_p) < 3 or len(ids_q) < 3:
         raise ValueError(f"cut={cut} leaves an agent with fewer than 3 trees")
     theta_first = float(wrap_angle(first_p[2] - first_q[2]))
@@ -326,6 +324,32 @@ def victoria_park(cut: int = DEFAULT_CUT, source: str = "reference", path=None) 
                           f"from the reference map after a rigid fit, {quality['rmse'] / expected:.1f} times what its "
                           "own marginal covariances predict", stacklevel=2)
     return pair
+
+
+def slam_map(start: int = 0, stop: int | None = None, path=None):
+    """One agent's own SLAM map of poses ``start .. stop-1`` (all by default), solved with GTSAM's iSAM2.
+
+    The solver of ``victoria_park(..., source="slam")`` (optional extra
+    ``[slam]``), cached on disk. Solving the whole drive checks the solver
+    against the reference map: what an agent's map lacks then is data
+    (the loop closures it never drove), not optimisation.
+
+    Returns
+    -------
+    ids : (m,) int ndarray
+        Rows of the reference tree map (``load_log(path).trees``).
+    points : (m, 2) ndarray
+        The trees in the frame of pose ``start``.
+    cov : (m, 2, 2) ndarray
+        Their marginal covariances.
+    """
+    from ._slam import agent_map
+
+    log = load_log(path)
+    stop = len(log.pose_ids) if stop is None else stop
+    if not 0 <= start < stop <= len(log.pose_ids):
+        raise ValueError(f"need 0 <= start < stop <= {len(log.pose_ids)}, got start={start}, stop={stop}")
+    return agent_map(log, start, stop)
 
 
 #: ``victoria_park`` warns when an agent's map error (RMS distance from the

@@ -64,17 +64,25 @@ def _world_to_first_pose(log, start, ids):
 def test_slam_agent_maps_are_right_to_their_bound(tmp_path, monkeypatch, start, stop, bound):
     """Each agent solves its own map incrementally: checked against the reference map by tree id."""
     pytest.importorskip("gtsam")
-    from mapmerge._slam import agent_map
+    from mapmerge.datasets import slam_map
 
     monkeypatch.setenv("MAPMERGE_CACHE", str(tmp_path))
     log = load_log()
-    ids, points, cov = agent_map(log, start, stop or len(log.pose_ids))
+    ids, points, cov = slam_map(start, stop)
     quality = fit_error(points, _world_to_first_pose(log, start, ids))
     assert quality["rmse"] <= bound
     assert cov.shape == (len(ids), 2, 2) and np.all(np.linalg.eigvalsh(cov) > 0)
     # Anchored at its first pose, the agent is surest of the first tree it saw.
     first = np.flatnonzero(ids == log.obs_tree[np.flatnonzero(log.obs_pose >= start)[0]])
     assert np.trace(cov[first][0]) < np.median(np.trace(cov, axis1=1, axis2=2))
+
+
+def test_slam_map_rejects_a_bad_pose_range():
+    from mapmerge.datasets import slam_map
+
+    for start, stop in ((-1, 10), (10, 10), (0, 10**6)):
+        with pytest.raises(ValueError, match="start < stop"):
+            slam_map(start, stop)
 
 
 def test_slam_cache_hits_and_is_invalidated_by_the_settings(tmp_path, monkeypatch):
