@@ -23,8 +23,8 @@ maps. Then writes:
   < 2σ), transform found (rotation < 1° and registration error <= σ),
   false merges on unrelated pairs and the median time per merge;
 * ``summary.md``: the same at 10-40 dB in 10 dB steps;
-* ``found.md`` / ``.csv``: transform found with its 95 % Wilson interval
-  and false merges, every SNR;
+* ``found.md`` / ``.csv``: consensus and the search alone, transform found
+  with its 95 % Wilson interval and false merges, every SNR;
 * ``crossing.md`` / ``.csv`` (when ``results/detector/limit.csv`` exists,
   ``python -m experiments.detector``): the SNR at which each method and
   the exhaustive ML detector find 90 % of the transforms;
@@ -146,10 +146,14 @@ def wilson(successes, n, level: float = 0.95) -> tuple[np.ndarray, np.ndarray]:
     return centre - half, centre + half
 
 
+#: Methods of ``found.md``: the ones meant to work where triangles stop discriminating.
+LOW_SNR_METHODS = ("consensus", "search")
+
+
 def found_table(comp: pd.DataFrame) -> pd.DataFrame:
-    """``found.md``: transform found with its 95 % Wilson interval and false merges, per method with a
-    usable τ rule, layout and SNR (the low-SNR targets)."""
-    s = comp[comp.tau != "oracle"].copy()
+    """``found.md``: transform found with its 95 % Wilson interval and false merges, per method of
+    ``LOW_SNR_METHODS``, layout and SNR (the low-SNR targets)."""
+    s = comp[(comp.tau != "oracle") & comp.method.isin(LOW_SNR_METHODS)].copy()
     s["found_low"], s["found_high"] = wilson(np.round(s.found_rate * s.n_trials), s.n_trials)
     names = {"method": "method", "layout": "layout", "snr_db": "SNR", "n_trials": "pairs",
              "found_rate": "transform found", "found_low": "95 % low", "found_high": "95 % high",
