@@ -127,7 +127,8 @@ def test_compare_consensus_found_table_and_crossing(tmp_path):
 
     out = tmp_path / "compare_consensus"
     run = cli(["-m", "experiment=compare_consensus", "mc.n_trials=4", "mc.chunk_size=2", "scenario.layout=strip",
-               "scenario.snr_db=12.5,30", f"aggregate_dir={out}", "mc.progress=false"], tmp_path, timeout=300)
+               "scenario.n_landmarks=40", "scenario.snr_db=12.5,30", f"aggregate_dir={out}", "mc.progress=false"],
+              tmp_path, timeout=300)
     assert run.returncode == 0, run.stderr[-2000:]
     comp = comparison_table(with_timing(out / "table.csv"))
     f = found_table(comp)
