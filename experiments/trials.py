@@ -214,6 +214,8 @@ def _evaluate(sc, match, log_tau, method, covariances, n_common, lp_true, lp_con
            "order_flips": np.bincount(merged.tri_trial[is_true & ~consistent], minlength=len(sc)),
            **metrics.map_errors_batch(sc, merged)}
     if first_pose is not None:
+        # The estimate itself too: on real maps its error against other truths is computed later.
+        row["theta"], row["t_x"], row["t_y"] = merged.theta, merged.t[:, 0], merged.t[:, 1]
         row["rot_err_first_pose_deg"] = np.degrees(np.abs(mm.wrap_angle(merged.theta - first_pose[0])))
         row["trans_err_first_pose"] = np.sqrt(np.sum((merged.t - first_pose[1]) ** 2, axis=1))
     return row

@@ -30,6 +30,7 @@ import pandas as pd  # noqa: E402
 
 from scipy.spatial import ConvexHull  # noqa: E402
 
+from mapmerge.alignment import align_pairs, wrap_angle  # noqa: E402
 from mapmerge.datasets import DEFAULT_CUT, fit_error, load_log, map_quality, slam_map, victoria_park  # noqa: E402
 from mapmerge.metrics import oracle_association  # noqa: E402
 
@@ -43,7 +44,8 @@ COLUMNS = {
     "n_q": "trees q", "n_common_landmarks": "common", "map_rmse_p": "map RMSE p (m)", "map_rmse_q": "map RMSE q (m)",
     "correct_pairs": "correct", "wrong_pairs": "wrong", "oracle_correct": "oracle correct",
     "oracle_wrong": "oracle wrong", "rot_err_deg": "rot err (deg)",
-    "rot_err_first_pose_deg": "rot err vs first poses (deg)", "fused_rmse": "fused RMSE (m)",
+    "rot_err_first_pose_deg": "rot err vs first poses (deg)",
+    "rot_err_own_deg": "rot err vs its correct pairs' fit (deg)", "fused_rmse": "fused RMSE (m)",
     "agents_rmse": "better agent, same trees (m)", "ms": "time (ms)",
 }
 
@@ -89,6 +91,20 @@ def fused_vs_agents(merged: pd.DataFrame, pair) -> tuple[float, float]:
     return fit_error(fused[["x", "y"]].to_numpy(), pair.truth[pair.log_ids_p[rows_p]])["rmse"], min(own)
 
 
+def own_fit_error(merged: pd.DataFrame, pair, theta: float) -> float:
+    """Rotation error (deg) of a merge against the rigid fit by ids over the pairs it got right.
+
+    On a non-rigid map pair the fit over all common trees is an average; a
+    merge that is right for the trees it paired is right by this measure."""
+    fused = merged[merged.origin == "fused"]
+    rows_p, rows_q = fused.index_p.to_numpy(), fused.index_q.to_numpy()
+    right = pair.ids_p[rows_p] == pair.ids_q[rows_q]
+    if right.sum() < 3:
+        return float("nan")
+    fit = align_pairs(pair.p[rows_p[right]], pair.q[rows_q[right]], 1.0)
+    return float(np.degrees(np.abs(wrap_angle(theta - fit.theta))))
+
+
 def table(trials: pd.DataFrame, examples: pd.DataFrame) -> pd.DataFrame:
     # Covariances change consensus's gates and every method's fusion; runs of the
     # other methods with them differ only in the fused positions.
@@ -103,6 +119,7 @@ def table(trials: pd.DataFrame, examples: pd.DataFrame) -> pd.DataFrame:
             ex = examples[(examples.cut == cut) & (examples.source == source) & (examples.method == row.method)
                           & (examples.use_cov == row.use_cov) & (examples.kind == "merged")]
             trials.loc[i, ["fused_rmse", "agents_rmse"]] = fused_vs_agents(ex, pair) if row.matched else np.nan
+            trials.loc[i, "rot_err_own_deg"] = own_fit_error(ex, pair, row.theta) if row.matched else np.nan
     t = trials[list(COLUMNS)].sort_values(["source", "cut", "method", "use_cov"])
     return t.rename(columns=COLUMNS)
 

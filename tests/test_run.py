@@ -123,3 +123,9 @@ def test_victoria_park_preset_runs_real_data(tmp_path):
     assert list(trials.n_p) == [82, 82] and list(trials.n_common_landmarks) == [66, 66]
     assert trials.loc["consensus", "rot_err_deg"] < 1 and trials.loc["consensus", "trans_err"] < 1
     assert (tmp_path / "outputs" / "sweeps" / "victoria_park" / "aggregate" / "table.csv").exists()
+    # The driver's table: consensus is right for the trees it paired, and its fused map is scored.
+    from experiments.victoria import load_runs, table
+
+    t = table(*load_runs(tmp_path / "outputs" / "sweeps" / "victoria_park")).set_index("method")
+    assert t.loc["consensus", "rot err vs its correct pairs' fit (deg)"] < 0.5
+    assert 0 < t.loc["consensus", "fused RMSE (m)"] < 1
