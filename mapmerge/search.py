@@ -160,8 +160,9 @@ def _refine(P, Q, theta, t, r, cell, sigma):
     return al
 
 
-def _log_nfa(P, Q, hypotheses, s: float, n_hypotheses: float) -> np.ndarray:
-    """log NFA of each refined hypothesis: the a contrario mixture test (module docstring, step 4)."""
+def _log_nfa(P, Q, hypotheses, s: float, n_hypotheses: float):
+    """log NFA of each hypothesis after EM, the a contrario mixture test (module docstring, step 4),
+    and the hypotheses moved to the EM's transforms."""
     hull = ConvexHull(P)
     c = SHARED_PRIOR / ((1 - SHARED_PRIOR) * len(P) / hull.volume * 2 * np.pi * s**2)
     log_lr, n_inside, fitted = [], [], []
