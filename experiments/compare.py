@@ -156,10 +156,11 @@ def found_table(comp: pd.DataFrame) -> pd.DataFrame:
     ``LOW_SNR_METHODS``, layout and SNR (the low-SNR targets)."""
     s = comp[(comp.tau != "oracle") & comp.method.isin(LOW_SNR_METHODS)].copy()
     s["found_low"], s["found_high"] = wilson(np.round(s.found_rate * s.n_trials), s.n_trials)
+    s["false_high"] = wilson(s.false_merges, s.n_trials_unrelated)[1]
     names = {"method": "method", "layout": "layout", "snr_db": "SNR", "n_trials": "pairs",
              "found_rate": "transform found", "found_low": "95 % low", "found_high": "95 % high",
              "false_merges": "false merges", "n_trials_unrelated": "unrelated pairs",
-             "median_ms_per_merge": "ms per merge"}
+             "false_high": "false-merge rate, 95 % high", "median_ms_per_merge": "ms per merge"}
     s["order"] = s.method.map({m: k for k, m in enumerate(METHOD_ORDER)})
     s = s.sort_values(["order", "layout", "snr_db"], key=lambda c: c != "strip" if c.name == "layout" else c)
     return s[[c for c in names if c in s]].rename(columns=names)
