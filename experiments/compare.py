@@ -64,7 +64,8 @@ def comparison_table(table: pd.DataFrame) -> pd.DataFrame:
     out["fp_per_trial"] = out.fp / out.n_trials
     # astroalign and the search return matched points, not triangles: no triangle counts.
     out.loc[out.method.isin(["astroalign", "search"]), ["recall_common", "recall_glrt", "fp_per_trial"]] = float("nan")
-    out["false_merges"] = (out.false_merge_rate_unrelated * out.n_trials_unrelated).round()
+    out["false_merges"] = (out.false_merge_rate_unrelated * out.n_trials_unrelated).round().astype("Int64")
+    out["n_trials_unrelated"] = out.n_trials_unrelated.astype("Int64")
     cols = KEYS + ["n_trials", "recall_common", "recall_glrt", "fp_per_trial", "correct_per_trial",
                    "wrong_per_trial", "oracle_correct_per_trial", "oracle_wrong_per_trial", "landmark_precision",
                    "landmark_recall", "success_rate", "found_rate", "false_merges", "n_trials_unrelated",
@@ -143,8 +144,8 @@ def wilson(successes, n, level: float = 0.95) -> tuple[np.ndarray, np.ndarray]:
     p = successes / n
     centre = (p + z**2 / (2 * n)) / (1 + z**2 / n)
     half = z * np.sqrt(p * (1 - p) / n + z**2 / (4 * n**2)) / (1 + z**2 / n)
-    # Clipped: rounding leaves 1e-19 where the bound is exactly 0 (or 1).
-    return np.clip(centre - half, 0.0, 1.0), np.clip(centre + half, 0.0, 1.0)
+    # Rounded: the formula leaves 1e-19 where the bound is exactly 0.
+    return np.clip(np.round(centre - half, 12), 0.0, 1.0), np.clip(np.round(centre + half, 12), 0.0, 1.0)
 
 
 #: Methods of ``found.md``: the ones meant to work where triangles stop discriminating.
