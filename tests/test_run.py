@@ -45,8 +45,8 @@ def test_chunks_of_other_code_are_not_reused(tmp_path, monkeypatch):
 
 
 #: A cell slow enough (consensus, ~20 ms a trial, 12 chunks) that stopping it after 3 chunks has seconds of margin.
-SLOW_CELL = ["scenario.snr_db=30", "matcher.method=consensus", "matcher.taus=[chi2:0.01]", "mc.n_trials=120",
-             "mc.chunk_size=10", "mc.n_jobs=1", "mc.progress=false"]
+SLOW_CELL = ["scenario.snr_db=30", "matcher.method=consensus", "matcher.taus=[chi2:0.01]", "mc.n_trials=60",
+             "mc.chunk_size=5", "mc.n_jobs=1", "mc.progress=false"]
 
 
 def _start(args, cwd):
