@@ -29,10 +29,9 @@ def test_astroalign_baseline_is_reproducible():
     # At 20 dB its RANSAC's random draws decide the answer; they are seeded
     # from the maps, so the same maps give the same merge, and astroalign's
     # own module is left as it was.
-    for seed in range(2):
-        sc = mm.simulate.make_pair(60, 0.75, 20, rng=seed)
-        a, b = (mm.merge_maps(sc.p, sc.q, sc.sigma, method="astroalign") for _ in range(2))
-        assert np.array_equal(a.pairs, b.pairs) and np.array_equal(a.t, b.t, equal_nan=True)
+    sc = mm.simulate.make_pair(60, 0.75, 20, rng=0)
+    a, b = (mm.merge_maps(sc.p, sc.q, sc.sigma, method="astroalign") for _ in range(2))
+    assert np.array_equal(a.pairs, b.pairs) and np.array_equal(a.t, b.t, equal_nan=True)
     # The caller's generator drives the RANSAC instead: the same seed, the same answer.
     sc = mm.simulate.make_pair(60, 0.75, 30, rng=0)
     c, d = (mm.merge_maps(sc.p, sc.q, sc.sigma, method="astroalign", rng=7) for _ in range(2))
