@@ -79,13 +79,18 @@ def oracle_pairs(pair) -> tuple[int, int]:
     return correct, len(pairs) - correct
 
 
+def _fused_rows(merged: pd.DataFrame):
+    """The merged map's fused rows and the rows of p and q each one fuses."""
+    fused = merged[merged.origin == "fused"]
+    return fused, fused.index_p.to_numpy(), fused.index_q.to_numpy()
+
+
 def fused_vs_agents(merged: pd.DataFrame, pair) -> tuple[float, float]:
     """RMSE (after a rigid fit onto the reference trees) of the fused rows, and the better of the
     two agents' own maps over the same landmarks (each against its own tree)."""
-    fused = merged[merged.origin == "fused"]
+    fused, rows_p, rows_q = _fused_rows(merged)
     if len(fused) < 3:
         return float("nan"), float("nan")
-    rows_p, rows_q = fused.index_p.to_numpy(), fused.index_q.to_numpy()
     own = [fit_error(pair.p[rows_p], pair.truth[pair.log_ids_p[rows_p]])["rmse"],
            fit_error(pair.q[rows_q], pair.truth[pair.log_ids_q[rows_q]])["rmse"]]
     return fit_error(fused[["x", "y"]].to_numpy(), pair.truth[pair.log_ids_p[rows_p]])["rmse"], min(own)
@@ -96,8 +101,7 @@ def own_fit_error(merged: pd.DataFrame, pair, theta: float) -> float:
 
     On a non-rigid map pair the fit over all common trees is an average; a
     merge that is right for the trees it paired is right by this measure."""
-    fused = merged[merged.origin == "fused"]
-    rows_p, rows_q = fused.index_p.to_numpy(), fused.index_q.to_numpy()
+    _, rows_p, rows_q = _fused_rows(merged)
     right = pair.ids_p[rows_p] == pair.ids_q[rows_q]
     if right.sum() < 3:
         return float("nan")
@@ -156,9 +160,9 @@ def figure(examples: pd.DataFrame, out: Path, cut: int = DEFAULT_CUT, method: st
 
 def solver_check() -> pd.DataFrame:
     """The SLAM solver on the whole drive against the reference tree map (rigid fit by tree id)."""
+    log = load_log()
     ids, points, _ = slam_map()
-    return pd.DataFrame([{"poses": len(load_log().pose_ids), "trees": len(ids),
-                          **fit_error(points, load_log().trees[ids])}])
+    return pd.DataFrame([{"poses": len(log.pose_ids), "trees": len(ids), **fit_error(points, log.trees[ids])}])
 
 
 def write(sweep: Path, out: Path) -> list[Path]:
