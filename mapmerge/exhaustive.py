@@ -41,7 +41,6 @@ from scipy.signal import fftconvolve
 from scipy.spatial import ConvexHull, cKDTree
 
 from .alignment import rotate
-from .consensus import inside_hull
 
 #: Translation cells, in units of s.
 GRID_STEP = 0.5
@@ -58,6 +57,28 @@ EXACT_RADIUS = 5.0
 QUAD_RADIAL, QUAD_ANGLES, QUAD_MAX_CENTRES = 8, 16, 400
 #: Values of Chernoff's λ tried (log-spaced in [0.02, 20]).
 CHERNOFF_POINTS = 40
+
+
+def inside_hull(hull: ConvexHull, x: np.ndarray) -> np.ndarray:
+    """Which points x (m, 2) lie inside a 2-D convex hull (boundary included)."""
+    return np.all(x @ hull.equations[:, :2].T + hull.equations[:, 2] <= 0, axis=1)
+
+
+def pair_noise(sigma: float, cov_p=None, cov_q=None) -> float:
+    """The mixture's s: per-coordinate standard deviation of p_i - x_j for a true pair.
+
+    √2 σ for two maps of noise σ; with per-landmark covariances, from the
+    median variance of each map (one s for the whole map, as the model has).
+    """
+    if cov_p is None:
+        return float(np.sqrt(2.0) * sigma)
+    var = np.median(np.trace(cov_p, axis1=1, axis2=2)) / 2 + np.median(np.trace(cov_q, axis1=1, axis2=2)) / 2
+    return float(np.sqrt(var))
+
+
+def bump_height(density: float, s: float, p_shared: float) -> float:
+    """The mixture's c = π / ((1 - π) λ), λ = ``density`` of p's landmarks, with N's 1 / (2π s²) folded in."""
+    return p_shared / ((1 - p_shared) * density * 2 * np.pi * s**2)
 
 
 def max_log_lr(P, Q, sigma: float, p_shared: float, density: float):
@@ -86,7 +107,7 @@ def max_log_lr(P, Q, sigma: float, p_shared: float, density: float):
     if not (sigma > 0 and 0 < p_shared < 1 and density > 0):
         raise ValueError("sigma and density must be > 0 and p_shared in (0, 1)")
     s = np.sqrt(2.0) * sigma
-    c = p_shared / ((1 - p_shared) * density * 2 * np.pi * s**2)
+    c = bump_height(density, s, p_shared)
     hull = ConvexHull(P)
     theta, t = _grid_peaks(P, Q, s, c, p_shared, hull)
     best = (-np.inf, 0.0, np.zeros(2))

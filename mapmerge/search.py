@@ -50,8 +50,8 @@ import numpy as np
 from scipy.spatial import ConvexHull, cKDTree
 
 from .alignment import align_pairs, rotate, rotation
-from .consensus import SHARED_PRIOR, associate, declared_triangles, inside_hull
-from .exhaustive import em_refine, exact_log_lr, null_log_tail
+from .consensus import SHARED_PRIOR, associate, declared_triangles
+from .exhaustive import bump_height, em_refine, exact_log_lr, inside_hull, null_log_tail, pair_noise
 from .result import MergeBatch, build_from_parts
 from .triangles import TriangleBatch
 
@@ -72,13 +72,6 @@ THIN_RANK = 3
 COARSE_SPACING = 0.3
 #: Largest rotation grid (a finer step than this needs is not searched).
 MAX_ROTATIONS = 1440
-
-
-def _pair_sigma(sigma: float, cov_p, cov_q) -> float:
-    if cov_p is None:
-        return float(np.sqrt(2.0) * sigma)
-    var = np.median(np.trace(cov_p, axis1=1, axis2=2)) / 2 + np.median(np.trace(cov_q, axis1=1, axis2=2)) / 2
-    return float(np.sqrt(var))
 
 
 def _thinned(X: np.ndarray, m: int) -> np.ndarray:
@@ -164,7 +157,7 @@ def _log_nfa(P, Q, hypotheses, s: float, n_hypotheses: float):
     """log NFA of each hypothesis after EM, the a contrario mixture test (module docstring, step 4),
     and the hypotheses moved to the EM's transforms."""
     hull = ConvexHull(P)
-    c = SHARED_PRIOR / ((1 - SHARED_PRIOR) * len(P) / hull.volume * 2 * np.pi * s**2)
+    c = bump_height(len(P) / hull.volume, s, SHARED_PRIOR)
     log_lr, n_inside, fitted = [], [], []
     for al in hypotheses:
         theta, t = em_refine(P, Q, al.theta, al.t, s, c, hull)
@@ -192,7 +185,7 @@ def search_pairs(P, Q, sigma: float, cov_p=None, cov_q=None):
     nfa : float
         Number of false alarms of the best hypothesis (inf when none could be refined).
     """
-    r = _pair_sigma(sigma, cov_p, cov_q)
+    r = pair_noise(sigma, cov_p, cov_q)
     Ps, Qs = _thinned(P, MAX_SEARCH_LANDMARKS), _thinned(Q, MAX_SEARCH_LANDMARKS)
     thetas, ts, cell, n_hyp = _hypotheses(Ps, Qs, r)
     refined = []

@@ -43,7 +43,7 @@ def test_null_log_tail_bounds_the_tail_of_unrelated_maps_and_is_not_vacuous(snr)
     values = []
     for _ in range(2000):
         x = rng.uniform(lo, hi, (400, 2))
-        x = x[mm.consensus.inside_hull(hull, x)][:60]
+        x = x[mm.exhaustive.inside_hull(hull, x)][:60]
         values.append(exhaustive.exact_log_lr(sc.p, x, 0.0, np.zeros(2), s, c, 0.5, hull))
     for q in (0.9, 0.99):
         level = np.quantile(values, q)
