@@ -397,7 +397,7 @@ def _mixture_associate(P, Q, pairs, sigma, cov_p, cov_q):
     """
     al = align_pairs(P[pairs[:, 0]], Q[pairs[:, 1]], sigma)
     s, hull = pair_noise(sigma, cov_p, cov_q), ConvexHull(P)
-    theta, t = em_refine(P, Q, al.theta, al.t, s, bump_height(len(P) / hull.volume, s, SHARED_PRIOR), hull)
+    theta, t = em_refine(P, Q, al.theta, al.t, s, bump_height(len(P), hull.volume, s, SHARED_PRIOR), hull)
     return associate(P, Q, dataclasses.replace(al, theta=theta, t=t), sigma, cov_p, cov_q)
 
 

@@ -76,9 +76,9 @@ def pair_noise(sigma: float, cov_p=None, cov_q=None) -> float:
     return float(np.sqrt(var))
 
 
-def bump_height(density: float, s: float, p_shared: float) -> float:
-    """The mixture's c = π / ((1 - π) λ), λ = ``density`` of p's landmarks, with N's 1 / (2π s²) folded in."""
-    return p_shared / ((1 - p_shared) * density * 2 * np.pi * s**2)
+def bump_height(n_p: float, area: float, s: float, p_shared: float) -> float:
+    """The mixture's c = π / ((1 - π) λ), λ = n_p / area p's landmark density, with N's 1 / (2π s²) folded in."""
+    return p_shared / ((1 - p_shared) * n_p / area * 2 * np.pi * s**2)
 
 
 def max_log_lr(P, Q, sigma: float, p_shared: float, density: float):
@@ -107,7 +107,7 @@ def max_log_lr(P, Q, sigma: float, p_shared: float, density: float):
     if not (sigma > 0 and 0 < p_shared < 1 and density > 0):
         raise ValueError("sigma and density must be > 0 and p_shared in (0, 1)")
     s = np.sqrt(2.0) * sigma
-    c = bump_height(density, s, p_shared)
+    c = bump_height(density, 1.0, s, p_shared)
     hull = ConvexHull(P)
     theta, t = _grid_peaks(P, Q, s, c, p_shared, hull)
     best = (-np.inf, 0.0, np.zeros(2))

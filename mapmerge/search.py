@@ -157,7 +157,7 @@ def _log_nfa(P, Q, hypotheses, s: float, n_hypotheses: float):
     """log NFA of each hypothesis after EM, the a contrario mixture test (module docstring, step 4),
     and the hypotheses moved to the EM's transforms."""
     hull = ConvexHull(P)
-    c = bump_height(len(P) / hull.volume, s, SHARED_PRIOR)
+    c = bump_height(len(P), hull.volume, s, SHARED_PRIOR)
     log_lr, n_inside, fitted = [], [], []
     for al in hypotheses:
         theta, t = em_refine(P, Q, al.theta, al.t, s, c, hull)
