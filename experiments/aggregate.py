@@ -91,16 +91,20 @@ def load(dirs, n_jobs: int = 1) -> tuple[pd.DataFrame, dict[tuple, pd.DataFrame]
         joblib.delayed(_load_run)(run) for run in find_runs(dirs))
     by_cell = {}
     for t, p in runs:
-        by_cell.setdefault(tuple(t[CELL].iloc[0]), []).append(p)
+        by_cell.setdefault(tuple(t[CELL].iloc[0]), []).append((t, p))
+    # A run never repeats a trial: only a cell with several runs can hold one twice.
+    for cell, parts in by_cell.items():
+        if len(parts) > 1:
+            keys = pd.concat([t[["seed", "trial", "tau"]] for t, _ in parts], ignore_index=True)
+            dup = keys.duplicated()
+            if dup.any():
+                row = keys[dup].iloc[0]
+                raise ValueError(
+                    f"trial {row.trial} of cell {dict(zip(CELL, cell))} (seed {row.seed}) appears in more than "
+                    "one run; pass run directories that do not overlap (e.g. one n_trials setting per cell)"
+                )
     trials = pd.concat([t for t, _ in runs], ignore_index=True)
-    dup = trials.duplicated(CELL + ["seed", "trial", "tau"])
-    if dup.any():
-        row = trials[dup].iloc[0]
-        raise ValueError(
-            f"trial {row.trial} of cell {row[CELL].to_dict()} (seed {row.seed}) appears in more than one "
-            "run; pass run directories that do not overlap (e.g. one n_trials setting per cell)"
-        )
-    return trials, {cell: _once(by_cell[cell]) for cell in sorted(by_cell)}
+    return trials, {cell: _once([p for _, p in by_cell[cell]]) for cell in sorted(by_cell)}
 
 
 def _once(parts: list[pd.DataFrame]) -> pd.DataFrame:
@@ -150,7 +154,7 @@ def _roc(cell: tuple, g: pd.DataFrame) -> tuple[pd.DataFrame, dict]:
         **head,
         "auc": metrics.auc(fpr, tpr),
         "p_d_at_zero_fa": float(tpr[fpr == 0].max()),
-        "n_trials": int(g.drop_duplicates(["seed", "trial"]).shape[0]),
+        "n_trials": int(np.unique(g["seed"].to_numpy(np.int64) * (1 << 32) + g["trial"].to_numpy(np.int64)).size),
         "n_pairs": len(g),
         "n_true": int(label.sum()),
         "n_order_flips": int((label & ~g["order_consistent"].to_numpy()).sum()),
@@ -171,7 +175,7 @@ def summary_table(trials: pd.DataFrame) -> pd.DataFrame:
     t["p_d"] = _ratio(t.tp, t.tp + t.md)
     t["p_fa"] = _ratio(t.fp, t.fp + t.tn)
     t["recall_common"] = _ratio(t.tp, t.common)
-    t["trials_with_fp"] = g["fp"].apply(lambda s: int((s > 0).sum()))
+    t["trials_with_fp"] = (trials["fp"] > 0).groupby([trials[k] for k in keys]).sum()
     lm = g[["correct_pairs", "wrong_pairs", "n_common_landmarks"]].sum()
     t["landmark_precision"] = _ratio(lm.correct_pairs, lm.correct_pairs + lm.wrong_pairs)
     t["landmark_recall"] = _ratio(lm.correct_pairs, lm.n_common_landmarks)

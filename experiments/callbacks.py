@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import logging
+import os
 import time
 from pathlib import Path
 
 from hydra.core.utils import JobStatus
 from hydra.experimental.callback import Callback
+from omegaconf import OmegaConf
 
 log = logging.getLogger(__name__)
 
@@ -40,5 +42,9 @@ class AggregateOnMultirunEnd(Callback):
         sweep_dir = Path(config.hydra.sweep.dir)
         runs = [r for r in find_runs([sweep_dir]) if (r / "trials.parquet").stat().st_mtime >= self.started - 1]
         out = Path(config.aggregate_dir) if config.aggregate_dir else sweep_dir / "aggregate"
-        aggregate(runs, out, n_jobs=config.mc.n_jobs)
+        # The jobs are done, so every core the multirun used may read: the cells' own
+        # mc.n_jobs (1 when the launcher runs cells in parallel) or the launcher's.
+        launcher_jobs = int(OmegaConf.select(config, "hydra.launcher.n_jobs", default=None) or 1)
+        n_jobs = max(config.mc.n_jobs, (os.cpu_count() or 1) if launcher_jobs < 0 else launcher_jobs)
+        aggregate(runs, out, n_jobs=n_jobs)
         log.info("aggregated %s into %s", sweep_dir, out)

@@ -1,9 +1,11 @@
 """Aggregation into ROC curves and tables, figures from tables, docs from results."""
 
 import os
+import shutil
 
 import numpy as np
 import pandas as pd
+import pytest
 
 from experiments.aggregate import aggregate
 from experiments.docs import refresh
@@ -56,6 +58,11 @@ def test_tau_rules_split_across_jobs_count_each_trial_once(tmp_path):
     b = pd.read_csv(tmp_path / "one_agg" / "table.csv").sort_values("tau", ignore_index=True)
     pd.testing.assert_frame_equal(a, b)
     assert pd.read_csv(tmp_path / "one_agg" / "auc.csv").n_trials.item() == 60
+    # The same trials in two runs of one cell would be counted twice: refused.
+    shutil.copytree(tmp_path / "one", tmp_path / "copy")
+    with pytest.raises(ValueError, match="appears in more than one run"):
+        aggregate([tmp_path / "one", tmp_path / "copy"], tmp_path / "twice")
+    assert not (tmp_path / "twice").exists()
 
 
 def test_example_triangle_status_prefers_the_telling_pair():
