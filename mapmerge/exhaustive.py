@@ -188,9 +188,10 @@ def null_log_tail(log_lr, n_inside, P, hull, s, c, p_shared) -> np.ndarray:
     return np.minimum(0.0, bound.min(axis=1))
 
 
-def _near_d2(P, x, radius):
-    """(j, d², i) of every p landmark within ``radius`` of each x_j."""
-    pairs = cKDTree(x).sparse_distance_matrix(cKDTree(P), radius, output_type="ndarray")
+def _near_d2(P, x, radius, tree_p=None):
+    """(j, d², i) of every p landmark within ``radius`` of each x_j (``tree_p``: P's tree, if built)."""
+    pairs = cKDTree(x).sparse_distance_matrix(cKDTree(P) if tree_p is None else tree_p, radius,
+                                              output_type="ndarray")
     return pairs["i"], pairs["v"] ** 2, pairs["j"]
 
 
@@ -198,12 +199,14 @@ def em_refine(P, Q, theta, t, s, c, hull):
     """EM on the mixture from (θ, t): responsibilities of each (i, j), then the weighted closed-form fit.
 
     Returns the refined ``(theta, t)`` after ``EM_ROUNDS`` rounds (fewer when
-    under two pairs lie within ``EXACT_RADIUS`` s).
+    under two pairs lie within ``EXACT_RADIUS`` s, or once a round returns
+    its input exactly: every further round would too).
     """
+    tree_p = cKDTree(P)
     for _ in range(EM_ROUNDS):
         x = rotate(-theta, Q - t)
         inside = np.flatnonzero(inside_hull(hull, x))
-        j, d2, i = _near_d2(P, x[inside], EXACT_RADIUS * s)
+        j, d2, i = _near_d2(P, x[inside], EXACT_RADIUS * s, tree_p)
         if len(j) < 2:
             break
         bump = c * np.exp(-d2 / (2 * s**2))
@@ -211,9 +214,12 @@ def em_refine(P, Q, theta, t, s, c, hull):
         a, b = P[i], Q[inside[j]]
         wa, wb = np.average(a, axis=0, weights=w), np.average(b, axis=0, weights=w)
         a, b = a - wa, b - wb
-        theta = float(np.arctan2(np.sum(w * (a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])),
-                                 np.sum(w * (a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]))))
-        t = wb - rotate(theta, wa[None])[0]
+        new = float(np.arctan2(np.sum(w * (a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])),
+                               np.sum(w * (a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]))))
+        new_t = wb - rotate(new, wa[None])[0]
+        if new == theta and np.array_equal(new_t, t):
+            break
+        theta, t = new, new_t
     return theta, t
 
 
