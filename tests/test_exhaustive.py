@@ -15,7 +15,7 @@ def test_detector_finds_the_transform_and_separates_related_from_unrelated():
     assert mm.metrics.transform_found(related, theta, t)
     # The maximum is at least Λ at the true transform (the grid and EM find the peak).
     s = np.sqrt(2) * related.sigma
-    c = 0.9 / (0.1 * related.density * 2 * np.pi * s**2)
+    c = exhaustive.bump_height(related.density, 1.0, s, 0.9)
     at_truth = exhaustive.exact_log_lr(related.p, related.q, related.theta, related.t, s, c, 0.9,
                                        ConvexHull(related.p))
     assert value >= at_truth - 1e-9
@@ -37,7 +37,7 @@ def test_null_log_tail_bounds_the_tail_of_unrelated_maps_and_is_not_vacuous(snr)
     sc = mm.simulate.make_pair(100, 0.75, snr, rng=7)
     hull = ConvexHull(sc.p)
     s = np.sqrt(2) * sc.sigma
-    c = 0.5 / (0.5 * sc.density * 2 * np.pi * s**2)
+    c = exhaustive.bump_height(sc.density, 1.0, s, 0.5)
     rng = np.random.default_rng(1)
     lo, hi = sc.p.min(axis=0), sc.p.max(axis=0)
     values = []
@@ -57,7 +57,7 @@ def test_null_log_tail_on_a_subsample_of_landmark_discs_matches_every_disc(monke
     sc = mm.simulate.make_pair(1200, 0.75, 15.0, rng=2)
     hull = ConvexHull(sc.p)
     s = np.sqrt(2) * sc.sigma
-    c = 0.5 / (0.5 * sc.density * 2 * np.pi * s**2)
+    c = exhaustive.bump_height(sc.density, 1.0, s, 0.5)
     levels, inside = [100.0, 400.0, 900.0], [900, 900, 900]
     sub = exhaustive.null_log_tail(levels, inside, sc.p, hull, s, c, 0.5)
     monkeypatch.setattr(exhaustive, "QUAD_MAX_CENTRES", 10_000)
