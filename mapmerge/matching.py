@@ -28,7 +28,7 @@ from scipy.spatial import cKDTree
 from scipy.special import chdtri
 
 from .statistic import log_lr_from_cost, min_cost, pairwise_log_lr
-from .triangles import TriangleBatch, triangulate_batch
+from .triangles import PARALLEL_MIN_LANDMARKS, TriangleBatch, triangulate_batches
 
 OBJECTIVES = ("lr", "loglr")
 
@@ -142,7 +142,9 @@ def candidate_pairs(coords_p, coords_q, sigma: float, log_tau: float, k: int):
     """
     tree = cKDTree(side_features(coords_q))
     k = min(k, len(coords_q))
-    dist, idx = tree.query(side_features(coords_p), k=k, distance_upper_bound=gate_radius(sigma, log_tau))
+    workers = -1 if len(coords_p) >= 2 * PARALLEL_MIN_LANDMARKS else 1  # a map has about 2n triangles
+    dist, idx = tree.query(side_features(coords_p), k=k, distance_upper_bound=gate_radius(sigma, log_tau),
+                           workers=workers)
     dist, idx = dist.reshape(len(coords_p), k), idx.reshape(len(coords_p), k)
     rows, slot = np.nonzero(np.isfinite(dist))
     pairs = np.stack([rows, idx[rows, slot]], axis=1).astype(np.intp)
@@ -375,7 +377,7 @@ def match_triangles(P: np.ndarray, Q: np.ndarray, sigma: np.ndarray, objective: 
     -------
     TriangleMatch
     """
-    tri_p, tri_q = triangulate_batch(P), triangulate_batch(Q)
+    tri_p, tri_q = triangulate_batches(P, Q)
     vp = tri_p.ccw_vertices() if cyclic else tri_p.vertices
     vq = tri_q.ccw_vertices() if cyclic else tri_q.vertices
     finite_tau = log_tau is not None and np.isfinite(log_tau)

@@ -28,7 +28,7 @@ from .baselines import astroalign as astroalign_baseline
 from .baselines import groth as groth_baseline
 from .matching import OBJECTIVES, TriangleMatch, match_triangles, resolve_correspondences, resolve_log_tau
 from .result import MergeBatch, MergeResult, build_batch
-from .triangles import triangulate_batch
+from .triangles import triangulate_batches
 
 
 @dataclass(frozen=True)
@@ -117,9 +117,9 @@ def merge_at(P: np.ndarray, Q: np.ndarray, sigma: np.ndarray, match: TriangleMat
 def _merge_at(P, Q, sigma, match, log_tau, method, cov_p, cov_q, rng) -> MergeBatch:
     m = get_method(method)
     if m.baseline is not None:
-        return m.baseline(P, Q, sigma, triangulate_batch(P), triangulate_batch(Q), rng)
+        return m.baseline(P, Q, sigma, *triangulate_batches(P, Q), rng)
     if m.name == "search":
-        return search.search_merge(P, Q, sigma, triangulate_batch(P), triangulate_batch(Q), cov_p, cov_q)
+        return search.search_merge(P, Q, sigma, *triangulate_batches(P, Q), cov_p, cov_q)
     if m.name == "consensus":
         return consensus.consensus_merge(P, Q, sigma, match, log_tau, cov_p, cov_q, fallback=search.search_pairs)
     declared = match.log_lr >= log_tau[match.trial]

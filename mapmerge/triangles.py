@@ -18,12 +18,19 @@ the Delaunay call itself runs per map.
 from __future__ import annotations
 
 import functools
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import Delaunay
 
 from ._validation import check_points
+
+#: Maps of at least this many landmarks are triangulated in parallel threads
+#: (Qhull releases the GIL), and their triangles' neighbour queries too.
+#: Smaller maps stay in one thread: the harness already runs one process
+#: per core, and a thread costs more than a small Delaunay call.
+PARALLEL_MIN_LANDMARKS = 20_000
 
 
 @dataclass(frozen=True)
@@ -197,6 +204,18 @@ def triangulate_batch(maps: np.ndarray) -> TriangleBatch:
         perm = groth_order(maps.reshape(-1, 2)[trial[:, None] * maps.shape[1] + flat])
     return TriangleBatch(maps=maps, vertices=np.take_along_axis(flat, perm, axis=1),
                          trial=trial, offsets=offsets)
+
+
+def triangulate_batches(*batches: np.ndarray) -> tuple[TriangleBatch, ...]:
+    """``triangulate_batch`` of each batch (e.g. the p maps and the q maps).
+
+    Batches of large maps (``PARALLEL_MIN_LANDMARKS``) run in parallel
+    threads; the triangles are the same either way.
+    """
+    if min(b.shape[1] for b in batches) < PARALLEL_MIN_LANDMARKS:
+        return tuple(triangulate_batch(b) for b in batches)
+    with ThreadPoolExecutor(len(batches)) as pool:
+        return tuple(pool.map(triangulate_batch, batches))
 
 
 def delaunay_edges(points: np.ndarray) -> np.ndarray:

@@ -52,3 +52,15 @@ def test_order_invariant_to_rigid_motion(rng):
 def test_triangulate_rejects_bad_input(points, match):
     with pytest.raises(ValueError, match=match):
         mm.triangulate(points)
+
+
+def test_large_maps_triangulated_in_threads_give_the_same_triangles(monkeypatch, rng):
+    from mapmerge import triangles
+
+    P, Q = rng.uniform(0, 100, size=(1, 3000, 2)), rng.uniform(0, 100, size=(1, 2000, 2))
+    serial = triangles.triangulate_batches(P, Q)
+    monkeypatch.setattr(triangles, "PARALLEL_MIN_LANDMARKS", 1000)
+    threaded = triangles.triangulate_batches(P, Q)
+    for a, b in zip(serial, threaded):
+        np.testing.assert_array_equal(a.vertices, b.vertices)
+        np.testing.assert_array_equal(a.offsets, b.offsets)
