@@ -7,8 +7,8 @@ sightings at that pose give bearing-range factors (a tree seen for the
 first time is placed from that sighting); iSAM2 updates the solution after
 every pose. Once the drive ends, a batch Levenberg-Marquardt refinement
 starts from the incremental estimate and is kept only if it lowers the
-graph's error. Each tree's marginal covariance (full 2x2) comes from the
-solution kept.
+graph's error. The trees' joint covariance (2m x 2m) comes from the
+solution kept; ``datasets.slam_map`` derives per-tree covariances from it.
 
 Solutions are cached on disk (``cache_dir()``), keyed by the data file's
 contents, the agent's pose range and ``SETTINGS``: an ordinary directory of
@@ -31,7 +31,7 @@ SETTINGS = {
     "relinearize_skip": 10,
     "batch_refinement": True,
     "prior_sigma": 1e-6,
-    "version": 2,
+    "version": 3,
 }
 
 
@@ -48,7 +48,7 @@ def _cache_key(path: Path, start: int, stop: int) -> str:
 
 
 def agent_map(log, start: int, stop: int, use_cache: bool = True):
-    """Trees, their estimates and marginal covariances for poses ``start..stop-1``.
+    """Trees, their estimates and joint covariance for poses ``start..stop-1``.
 
     Returns
     -------
@@ -56,21 +56,22 @@ def agent_map(log, start: int, stop: int, use_cache: bool = True):
         Tree ids (rows of the reference tree map), sorted.
     points : (m, 2) ndarray
         Tree estimates in the frame of pose ``start``.
-    cov : (m, 2, 2) ndarray
-        Marginal covariances.
+    joint : (2m, 2m) ndarray
+        Joint covariance of the trees' coordinates (x_0, y_0, x_1, ...),
+        the first pose held fixed.
     """
     path = Path(log.path)
     cached = cache_dir() / f"{_cache_key(path, start, stop)}.npz"
     if use_cache and cached.is_file():
         with np.load(cached) as data:
-            return data["ids"], data["points"], data["cov"]
-    ids, points, cov = _solve(log, start, stop)
+            return data["ids"], data["points"], data["joint"]
+    ids, points, joint = _solve(log, start, stop)
     if use_cache:
         cached.parent.mkdir(parents=True, exist_ok=True)
         tmp = cached.with_name(f".{cached.name}.{os.getpid()}.tmp.npz")
-        np.savez(tmp, ids=ids, points=points, cov=cov)
+        np.savez(tmp, ids=ids, points=points, joint=joint)
         os.replace(tmp, cached)
-    return ids, points, cov
+    return ids, points, joint
 
 
 def _solve(log, start: int, stop: int):
@@ -123,13 +124,19 @@ def _solve(log, start: int, stop: int):
         full.push_back(new)
         previous = isam.calculateEstimatePose2(key)
     estimate = isam.calculateEstimate()
-    solution, marginal = estimate, isam.marginalCovariance
+    solution = estimate
     if SETTINGS["batch_refinement"]:
         refined = gtsam.LevenbergMarquardtOptimizer(full, estimate).optimize()
         if full.error(refined) < full.error(estimate):
-            solution, marginal = refined, gtsam.Marginals(full, refined).marginalCovariance
+            solution = refined
     trees = sorted(placed, key=lambda t: tree_of[t])
     ids = np.array([tree_of[t] for t in trees], dtype=np.intp)
     points = np.array([solution.atPoint2(t) for t in trees])
-    cov = np.array([marginal(t) for t in trees])
-    return ids, points, cov
+    keys = gtsam.KeyVector()
+    for tree in trees:
+        keys.append(tree)
+    # GTSAM orders the joint marginal's blocks by key, not as asked: put them in the trees' order.
+    blocks = np.argsort(np.argsort(np.array(trees, dtype=np.uint64)))
+    rows = (2 * blocks[:, None] + np.arange(2)).ravel()
+    joint = gtsam.Marginals(full, solution).jointMarginalCovariance(keys).fullMatrix()[np.ix_(rows, rows)]
+    return ids, points, joint

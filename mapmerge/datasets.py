@@ -13,7 +13,9 @@ first pose, from its own observations only:
   the tree's number of observations.
 - ``source="slam"``: the agent solves its own SLAM problem with GTSAM
   (optional extra ``[slam]``) from its own odometry and tree observations,
-  anchored at its first pose, and reports each tree's marginal covariance.
+  anchored at its first pose, and reports each tree's covariance with the
+  map's rigid motion removed (``slam_map``: what is left once maps are
+  aligned).
 
 Pose and landmark ids share one number space in the log; poses are counted
 in the order they appear in the odometry chain. The reference tree map's row
@@ -322,17 +324,32 @@ def victoria_park(cut: int = DEFAULT_CUT, source: str = "reference", path=None) 
         if quality["rmse"] > QUALITY_WARNING * expected:
             warnings.warn(f"Victoria Park cut {cut} ({source}): agent {agent}'s map is {quality['rmse']:.1f} m RMS "
                           f"from the reference map after a rigid fit, {quality['rmse'] / expected:.1f} times what its "
-                          "own marginal covariances predict", stacklevel=2)
+                          "own covariances predict", stacklevel=2)
     return pair
 
 
-def slam_map(start: int = 0, stop: int | None = None, path=None):
+#: Per-tree covariances ``slam_map`` can report (see there).
+GAUGES = ("shape", "first_pose")
+
+
+def slam_map(start: int = 0, stop: int | None = None, path=None, gauge: str = "shape"):
     """One agent's own SLAM map of poses ``start .. stop-1`` (all by default), solved with GTSAM's iSAM2.
 
     The solver of ``victoria_park(..., source="slam")`` (optional extra
     ``[slam]``), cached on disk. Solving the whole drive checks the solver
     against the reference map: what an agent's map lacks then is data
     (the loop closures it never drove), not optimisation.
+
+    Parameters
+    ----------
+    gauge : {"shape", "first_pose"}
+        Which per-tree covariance to report. ``"first_pose"``: the marginal
+        covariance with the agent's first pose held fixed; it grows with
+        the distance driven, mostly from heading error that turns the whole
+        map. ``"shape"`` (default): the same joint covariance with the
+        map's rigid motion removed (``rigid_free_covariance``). Merging
+        estimates that rigid motion, so only the shape error is left to
+        gate associations and weight the fusion.
 
     Returns
     -------
@@ -341,20 +358,54 @@ def slam_map(start: int = 0, stop: int | None = None, path=None):
     points : (m, 2) ndarray
         The trees in the frame of pose ``start``.
     cov : (m, 2, 2) ndarray
-        Their marginal covariances.
+        Their covariances in the chosen gauge.
     """
     from ._slam import agent_map
 
+    if gauge not in GAUGES:
+        raise ValueError(f"gauge must be one of {GAUGES}, got {gauge!r}")
     log = load_log(path)
     stop = len(log.pose_ids) if stop is None else stop
     if not 0 <= start < stop <= len(log.pose_ids):
         raise ValueError(f"need 0 <= start < stop <= {len(log.pose_ids)}, got start={start}, stop={stop}")
-    return agent_map(log, start, stop)
+    ids, points, joint = agent_map(log, start, stop)
+    if gauge == "shape":
+        joint = rigid_free_covariance(points, joint)
+    m = len(ids)
+    return ids, points, joint.reshape(m, 2, m, 2)[np.arange(m), :, np.arange(m), :]
+
+
+def rigid_free_covariance(points: np.ndarray, joint: np.ndarray) -> np.ndarray:
+    """A map's joint covariance with its rigid motion removed (an S-transformation).
+
+    An error that turns and shifts the whole map is invisible once the map
+    is aligned to another: this is the covariance of the residual left
+    after a least-squares rigid fit over all of the map's points,
+    ``A Σ Aᵀ`` with ``A = I - J (JᵀJ)⁻¹ Jᵀ`` and ``J`` the points' motion
+    under a small rotation about their centroid and a translation.
+
+    Parameters
+    ----------
+    points : (m, 2) ndarray
+    joint : (2m, 2m) ndarray
+        Covariance of (x_0, y_0, x_1, y_1, ...).
+
+    Returns
+    -------
+    (2m, 2m) ndarray
+    """
+    m = len(points)
+    centred = points - points.mean(axis=0)
+    J = np.zeros((2 * m, 3))
+    J[0::2, 0], J[1::2, 0] = -centred[:, 1], centred[:, 0]
+    J[0::2, 1] = J[1::2, 2] = 1.0
+    A = np.eye(2 * m) - J @ np.linalg.solve(J.T @ J, J.T)
+    return A @ joint @ A.T
 
 
 #: ``victoria_park`` warns when an agent's map error (RMS distance from the
 #: reference map after a rigid fit) exceeds this many times the RMS distance
-#: its own marginal covariances predict.
+#: its own covariances predict.
 QUALITY_WARNING = 2.0
 
 
@@ -377,7 +428,7 @@ def map_quality(pair: AgentPair) -> dict:
     dict
         ``{"p": {...}, "q": {...}}``, each with ``rmse`` and ``max`` (metres,
         after the fit), ``rot_deg`` (the fit's rotation), ``rms_sd`` (the
-        RMS per-coordinate marginal standard deviation the agent reports for
+        RMS per-coordinate standard deviation the agent reports for
         its trees) and ``trees``.
     """
     out = {}
