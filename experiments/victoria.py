@@ -11,7 +11,9 @@ translation error, combined-map RMSE against the reference tree map, and
 time per merge; ``victoria_park.png`` / ``.pdf``: both agents' maps, the
 merged map and the reference trees at the default cut; and, with the slam
 source, ``solver_check.md``: the same SLAM solver on the whole drive against
-the reference tree map.
+the reference tree map; and ``min_sightings.md``: ``consensus`` on the
+SLAM maps when each agent publishes only the trees it sighted at least
+1, 2 or 3 times.
 """
 
 from __future__ import annotations
@@ -32,7 +34,8 @@ from scipy.spatial import ConvexHull  # noqa: E402
 
 from mapmerge.alignment import align_pairs, wrap_angle  # noqa: E402
 from mapmerge.datasets import DEFAULT_CUT, fit_error, load_log, map_quality, slam_map, victoria_park  # noqa: E402
-from mapmerge.metrics import oracle_association  # noqa: E402
+from mapmerge.merging import merge_maps  # noqa: E402
+from mapmerge.metrics import map_errors, oracle_association  # noqa: E402
 
 from .aggregate import find_runs, save_table  # noqa: E402
 from .figures import STYLE, _save  # noqa: E402
@@ -174,6 +177,36 @@ def figure(examples: pd.DataFrame, out: Path, cut: int = DEFAULT_CUT, method: st
         return _save(fig, out, "victoria_park")
 
 
+#: Cuts and landmark-confirmation thresholds of ``confirmation_table``.
+CONFIRMATION_CUTS = (1500, 2500, 3483, 4500, 5500, 6200)
+CONFIRMATION_SIGHTINGS = (1, 2, 3)
+
+
+def confirmation_table() -> pd.DataFrame:
+    """``consensus`` on the SLAM maps when each agent publishes only trees it sighted at least k times."""
+    rows = []
+    for cut in CONFIRMATION_CUTS:
+        for k in CONFIRMATION_SIGHTINGS:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # map quality is in the main table
+                pair = victoria_park(cut=cut, source="slam", min_sightings=k)
+            for use_cov in (False, True):
+                cov = {"cov_p": pair.cov_p, "cov_q": pair.cov_q} if use_cov else {}
+                res = merge_maps(pair.p, pair.q, pair.sigma, **cov)
+                err = map_errors(pair, res)
+                merged = pd.DataFrame({"origin": res.combined.origin, "index_p": res.combined.index_p,
+                                       "index_q": res.combined.index_q, "x": res.combined.points[:, 0],
+                                       "y": res.combined.points[:, 1]})
+                fused, agents = fused_vs_agents(merged, pair) if res.matched else (np.nan, np.nan)
+                rows.append({"cut": cut, "min sightings": k, "covariances": use_cov, "trees p": len(pair.p),
+                             "trees q": len(pair.q), "common": pair.n_common, "matched": res.matched,
+                             "correct": err["correct_pairs"], "wrong": err["wrong_pairs"],
+                             "wrong (% of pairs)": 100 * err["wrong_pairs"] / max(err["n_pairs"], 1),
+                             "rot err (deg)": err["rot_err_deg"] if res.matched else np.nan,
+                             "fused RMSE (m)": fused, "better agent, same trees (m)": agents})
+    return pd.DataFrame(rows)
+
+
 def solver_check() -> pd.DataFrame:
     """The SLAM solver on the whole drive against the reference tree map (rigid fit by tree id)."""
     log = load_log()
@@ -187,6 +220,7 @@ def write(sweep: Path, out: Path) -> list[Path]:
     paths = [*save_table(table(trials, examples), out / "table"), *figure(examples, out)]
     if (trials.source == "slam").any():
         paths += save_table(solver_check(), out / "solver_check")
+        paths += save_table(confirmation_table(), out / "min_sightings")
     return paths
 
 

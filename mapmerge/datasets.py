@@ -260,7 +260,7 @@ def _reference_map(log: VictoriaParkLog, sel: np.ndarray):
     return ids, mean, cov
 
 
-def victoria_park(cut: int = DEFAULT_CUT, source: str = "reference", path=None) -> AgentPair:
+def victoria_park(cut: int = DEFAULT_CUT, source: str = "reference", path=None, min_sightings: int = 1) -> AgentPair:
     """Two agents' tree maps of Victoria Park, split at pose index ``cut``.
 
     Parameters
@@ -272,6 +272,11 @@ def victoria_park(cut: int = DEFAULT_CUT, source: str = "reference", path=None) 
         How each agent builds its map (see the module docstring).
     path : path, optional
         Folder holding the three data files; default the bundled copy.
+    min_sightings : int, default 1
+        Each agent publishes only the trees it sighted at least this often
+        itself (landmark confirmation, as SLAM front ends do against
+        spurious detections; the SLAM solve still uses every sighting).
+        The default keeps every tree.
 
     Returns
     -------
@@ -280,7 +285,8 @@ def victoria_park(cut: int = DEFAULT_CUT, source: str = "reference", path=None) 
     Raises
     ------
     ValueError
-        On a bad ``cut`` or ``source``; ``DatasetError`` on bad files.
+        On a bad ``cut``, ``source`` or ``min_sightings``; ``DatasetError``
+        on bad files.
     """
     if source not in SOURCES:
         raise ValueError(f"source must be one of {SOURCES}, got {source!r}")
@@ -289,8 +295,10 @@ def victoria_park(cut: int = DEFAULT_CUT, source: str = "reference", path=None) 
     if isinstance(cut, bool) or int(cut) != cut or not 1 <= cut < n_ref - 1:
         raise ValueError(f"cut must be an integer pose index in [1, {n_ref - 2}], got {cut!r}")
     cut = int(cut)
-    # Observations from poses without a reference pose cannot be placed.
-    valid = log.obs_pose < n_ref
+    if isinstance(min_sightings, bool) or int(min_sightings) != min_sightings or min_sightings < 1:
+        raise ValueError(f"min_sightings must be an integer >= 1, got {min_sightings!r}")
+    # Observations from poses without a reference pose cannot be placed (the SLAM solve uses them).
+    valid = log.obs_pose < n_ref if source == "reference" else np.ones(len(log.obs_pose), bool)
     sel_p, sel_q = valid & (log.obs_pose < cut), valid & (log.obs_pose >= cut)
     first_p, first_q = log.trajectory[0], log.trajectory[cut]
     if source == "reference":
@@ -303,8 +311,12 @@ def victoria_park(cut: int = DEFAULT_CUT, source: str = "reference", path=None) 
     else:
         ids_p, p, cov_p = slam_map(0, cut, path)
         ids_q, q, cov_q = slam_map(cut, None, path)
+    seen_p = np.bincount(log.obs_tree[sel_p], minlength=len(log.trees))[ids_p] >= min_sightings
+    seen_q = np.bincount(log.obs_tree[sel_q], minlength=len(log.trees))[ids_q] >= min_sightings
+    ids_p, p, cov_p = ids_p[seen_p], p[seen_p], cov_p[seen_p]
+    ids_q, q, cov_q = ids_q[seen_q], q[seen_q], cov_q[seen_q]
     if len(ids_p) < 3 or len(ids_q) < 3:
-        raise ValueError(f"cut={cut} leaves an agent with fewer than 3 trees")
+        raise ValueError(f"cut={cut} (min_sightings={min_sightings}) leaves an agent with fewer than 3 trees")
     theta_first = float(wrap_angle(first_p[2] - first_q[2]))
     t_first = (first_p[:2] - first_q[:2]) @ rotation(first_q[2])
     _, ip, iq = np.intersect1d(ids_p, ids_q, return_indices=True)

@@ -172,3 +172,19 @@ def test_bad_arguments_and_files(tmp_path):
     (tmp_path / "ISAM2_GT_victoriaPark_lm.txt").write_text("1 2\n3 4\n")
     with pytest.raises(DatasetError, match="151"):
         victoria_park(path=tmp_path)
+
+
+def test_min_sightings_keeps_only_trees_each_agent_confirmed():
+    log = load_log()
+    every = victoria_park(cut=1500)
+    confirmed = victoria_park(cut=1500, min_sightings=3)
+    for ids, agent_poses in ((confirmed.log_ids_p, log.obs_pose < 1500),
+                             (confirmed.log_ids_q, (log.obs_pose >= 1500) & (log.obs_pose < len(log.trajectory)))):
+        seen = np.bincount(log.obs_tree[agent_poses], minlength=len(log.trees))
+        assert np.all(seen[ids] >= 3)
+        assert np.sum(seen >= 3) == len(ids)  # and every such tree is kept
+    assert set(confirmed.log_ids_p) < set(every.log_ids_p) and set(confirmed.log_ids_q) < set(every.log_ids_q)
+    np.testing.assert_array_equal(victoria_park(cut=1500, min_sightings=1).p, every.p)
+    for bad in (0, 2.5, True):
+        with pytest.raises(ValueError, match="min_sightings must be an integer >= 1"):
+            victoria_park(cut=1500, min_sightings=bad)
