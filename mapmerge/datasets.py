@@ -380,6 +380,8 @@ def slam_map(start: int = 0, stop: int | None = None, path=None, gauge: str = "s
     stop = len(log.pose_ids) if stop is None else stop
     if not 0 <= start < stop <= len(log.pose_ids):
         raise ValueError(f"need 0 <= start < stop <= {len(log.pose_ids)}, got start={start}, stop={stop}")
+    if not np.any((log.obs_pose >= start) & (log.obs_pose < stop)):
+        raise ValueError(f"poses {start}..{stop - 1} sight no tree: choose a longer range of poses")
     ids, points, joint = agent_map(log, start, stop)
     if gauge == "shape":
         joint = rigid_free_covariance(points, joint)
@@ -411,7 +413,7 @@ def rigid_free_covariance(points: np.ndarray, joint: np.ndarray) -> np.ndarray:
     J = np.zeros((2 * m, 3))
     J[0::2, 0], J[1::2, 0] = -centred[:, 1], centred[:, 0]
     J[0::2, 1] = J[1::2, 2] = 1.0
-    A = np.eye(2 * m) - J @ np.linalg.solve(J.T @ J, J.T)
+    A = np.eye(2 * m) - J @ np.linalg.pinv(J)  # pinv: one tree alone moves rigidly in every direction
     return A @ joint @ A.T
 
 

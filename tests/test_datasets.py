@@ -104,6 +104,8 @@ def test_slam_map_rejects_a_bad_pose_range():
             slam_map(start, stop)
     with pytest.raises(ValueError, match="gauge must be one of"):
         slam_map(0, 10, gauge="world")
+    with pytest.raises(ValueError, match="sight no tree"):
+        slam_map(0, 2)
 
 
 def test_slam_cache_hits_and_is_invalidated_by_the_settings(tmp_path, monkeypatch):
