@@ -19,6 +19,7 @@ SLAM maps when each agent publishes only the trees it sighted at least
 from __future__ import annotations
 
 import argparse
+import functools
 import importlib.util
 import warnings
 from pathlib import Path
@@ -79,9 +80,16 @@ def quality(cut: int, source: str) -> tuple[dict, object]:
     return map_quality(pair), pair
 
 
+@functools.cache
+def tree_sightings() -> np.ndarray:
+    """How often the whole log sighted each tree id."""
+    log = load_log()
+    return np.bincount(log.obs_tree, minlength=len(log.trees))
+
+
 def wrong_on_few_sightings(pair, rows_p, rows_q) -> int:
     """How many wrong pairs (rows of p, rows of q) involve a tree seen at most ``FEW_SIGHTINGS`` times."""
-    seen = np.bincount(load_log().obs_tree, minlength=len(pair.truth))
+    seen = tree_sightings()
     wrong = pair.ids_p[rows_p] != pair.ids_q[rows_q]
     few = np.minimum(seen[pair.log_ids_p[rows_p]], seen[pair.log_ids_q[rows_q]]) <= FEW_SIGHTINGS
     return int(np.sum(wrong & few))
