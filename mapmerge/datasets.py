@@ -395,8 +395,9 @@ def rigid_free_covariance(points: np.ndarray, joint: np.ndarray) -> np.ndarray:
     An error that turns and shifts the whole map is invisible once the map
     is aligned to another: this is the covariance of the residual left
     after a least-squares rigid fit over all of the map's points,
-    ``A Σ Aᵀ`` with ``A = I - J (JᵀJ)⁻¹ Jᵀ`` and ``J`` the points' motion
-    under a small rotation about their centroid and a translation.
+    ``A Σ Aᵀ`` with ``A = I - J J⁺`` (``J⁺`` the pseudo-inverse, which is
+    ``(JᵀJ)⁻¹ Jᵀ`` for two or more distinct points) and ``J`` the points'
+    motion under a small rotation about their centroid and a translation.
 
     Parameters
     ----------
