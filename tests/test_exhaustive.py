@@ -1,6 +1,7 @@
 """The exhaustive ML detector (a limit for the matchers, not a method)."""
 
 import numpy as np
+import pandas as pd
 import pytest
 from scipy.spatial import ConvexHull
 
@@ -63,3 +64,30 @@ def test_null_log_tail_on_a_subsample_of_landmark_discs_matches_every_disc(monke
     monkeypatch.setattr(exhaustive, "QUAD_MAX_CENTRES", 10_000)
     full = exhaustive.null_log_tail(levels, inside, sc.p, hull, s, c, 0.5)
     assert np.all(full < -10) and np.allclose(sub, full, rtol=0.05)
+
+
+def test_limit_experiment_resumes_without_recomputing_finished_pairs(tmp_path, monkeypatch):
+    from experiments import detector
+
+    calls = []
+
+    def fake_statistic(layout, snr, seed, unrelated):
+        calls.append((layout, snr, seed, unrelated))
+        return float(seed % 97) + snr, not unrelated, 0.0
+
+    monkeypatch.setattr(detector, "statistic", fake_statistic)
+    monkeypatch.setattr(detector, "SNRS", np.array([0.0, 2.5]))
+    path = tmp_path / "pairs.csv"
+    fresh = detector.run_pairs(8, 1, path)
+    assert len(calls) == len(fresh) == 2 * 2 * 2 * 8
+    # Interrupted after some pairs: only the missing ones are computed again, and
+    # the table is the same as the uninterrupted run's.
+    fresh.iloc[:20].to_csv(path, index=False)
+    calls.clear()
+    resumed = detector.run_pairs(8, 1, path)
+    assert len(calls) == len(fresh) - 20
+    pd.testing.assert_frame_equal(resumed, fresh)
+    # A shorter run reads its pairs from the file and keeps the others in it.
+    calls.clear()
+    short = detector.run_pairs(4, 1, path)
+    assert not calls and len(short) == 2 * 2 * 2 * 4 and len(pd.read_csv(path)) == len(fresh)
