@@ -1,7 +1,8 @@
 """The exhaustive ML detector's limit curve: could any matcher have merged these pairs? (results/detector/)
 
-    python -m experiments.detector                  # 100 pairs per cell, 0-12.5 dB, both layouts
+    python -m experiments.detector                  # 100 pairs per cell, 0-17.5 dB, both layouts
     python -m experiments.detector --trials 20      # a quick look
+    python -m experiments.detector --snrs 15 --layouts strip --trials 1000 --out results/detector/15db
 
 Pairs already in ``pairs.csv`` are not computed again (each pair depends on
 its seed alone), so an interrupted or extended run resumes, and a rerun
@@ -20,7 +21,11 @@ Fig. 1 scenario (100 landmarks per map, 75 % common):
 2. related pairs on seeds 100000+k (disjoint from the tuning seeds): the
    detector merges when the statistic passes the threshold, and the pair
    counts as found when it also put the transform within 1° and σ
-   (``mapmerge.metrics.transform_found``).
+   (``mapmerge.metrics.transform_found``);
+3. on the same pairs, ``consensus`` (``mapmerge.merge_maps`` with its
+   defaults, not told σ's truth beyond the maps' own σ, nor the prior):
+   whether it merged, and whether it found the transform. The two are
+   compared pair by pair.
 
 The detector knows the true σ and the layout's prior, so it is a limit (an
 oracle), not a method. From 12.5 dB on every related pair is far above the
@@ -43,7 +48,7 @@ from mapmerge.consensus import SHARED_RANGE
 
 from .aggregate import save_table
 
-SNRS = np.arange(0.0, 12.51, 2.5)
+SNRS = tuple(np.arange(0.0, 17.51, 2.5))
 LAYOUTS = ("strip", "interleaved")
 #: False alarms per unrelated pair allowed to the detector, as for the matchers' targets.
 FALSE_ALARM = 1e-3
@@ -52,14 +57,29 @@ TAIL_QUANTILE = 0.75
 TUNING_SEED, REPORTED_SEED = 300_000, 100_000
 
 
+def _pair(layout: str, snr: float, seed: int, unrelated: bool):
+    return mm.simulate.make_pair(100, 0.75, snr, rng=seed, unrelated=unrelated, layout=layout)
+
+
 def statistic(layout: str, snr: float, seed: int, unrelated: bool) -> tuple[float, bool, float]:
     """(max Λ, transform found, seconds) of one pair."""
-    sc = mm.simulate.make_pair(100, 0.75, snr, rng=seed, unrelated=unrelated, layout=layout)
+    sc = _pair(layout, snr, seed, unrelated)
     clock = time.perf_counter()
     value, theta, t = mm.exhaustive.max_log_lr(sc.p, sc.q, sc.sigma, float(np.clip(sc.p_shared, *SHARED_RANGE)),
                                                sc.density)
     seconds = time.perf_counter() - clock
     return value, (not unrelated) and mm.metrics.transform_found(sc, theta, t), seconds
+
+
+def consensus_outcome(layout: str, snr: float, seed: int, unrelated: bool) -> tuple[bool, bool]:
+    """(merged, transform found) of ``consensus`` on the same pair."""
+    sc = _pair(layout, snr, seed, unrelated)
+    res = mm.merge_maps(sc.p, sc.q, sc.sigma)
+    return res.matched, res.matched and not unrelated and mm.metrics.transform_found(sc, res.theta, res.t)
+
+
+#: What is measured on each pair: the function and the columns it fills.
+MEASURES = ((statistic, ("log_lr", "found", "seconds")), (consensus_outcome, ("consensus_merged", "consensus_found")))
 
 
 def null_threshold(null: np.ndarray) -> float:
@@ -70,7 +90,7 @@ def null_threshold(null: np.ndarray) -> float:
 
 
 JOB = ["layout", "snr_db", "seed", "unrelated"]
-COLUMNS = JOB + ["log_lr", "found", "seconds"]
+COLUMNS = JOB + [column for _, columns in MEASURES for column in columns]
 
 
 def cell_jobs(layout: str, snr: float, trials: int) -> list[tuple]:
@@ -79,29 +99,35 @@ def cell_jobs(layout: str, snr: float, trials: int) -> list[tuple]:
             for unrelated, base in ((True, TUNING_SEED), (False, REPORTED_SEED)) for seed in base + np.arange(trials)]
 
 
-def run_pairs(trials: int, n_jobs: int, path: Path) -> pd.DataFrame:
-    """The statistic of every null and related pair: one row each, in job order.
+def run_pairs(trials: int, n_jobs: int, path: Path, snrs=SNRS, layouts=LAYOUTS) -> pd.DataFrame:
+    """Every measure of every null and related pair: one row each, in job order.
 
     ``path`` (``pairs.csv``) is read first and rewritten after each cell
-    computed: pairs it already holds are not computed again, and its rows of
-    other pairs (e.g. of a run with more trials) are kept.
+    computed: measures it already holds are not computed again, and its
+    rows of other pairs (e.g. of a run with more trials) are kept.
     """
-    known = {}
+    known: dict[tuple, dict] = {}
     if path.is_file():
-        known = {tuple(row[:4]): tuple(row[4:]) for row in pd.read_csv(path)[COLUMNS].itertuples(index=False)}
+        old = pd.read_csv(path)
+        known = {job: {k: v for k, v in row.items() if not pd.isna(v)}
+                 for job, row in zip(old[JOB].itertuples(index=False, name=None),
+                                     old.drop(columns=JOB).to_dict("records"))}
     jobs = []
-    for layout in LAYOUTS:
-        for snr in SNRS:
+    for layout in layouts:
+        for snr in snrs:
             cell = cell_jobs(layout, snr, trials)
-            todo = [job for job in cell if job not in known]
-            if todo:
-                known.update(zip(todo, Parallel(n_jobs=n_jobs, batch_size=4)(delayed(statistic)(*job)
-                                                                             for job in todo)))
-                ordered = jobs + cell
-                ordered += [job for job in known if job not in set(ordered)]
-                pd.DataFrame([(*job, *known[job]) for job in ordered], columns=COLUMNS).to_csv(
-                    path, index=False, float_format="%.10g")  # seconds: its one machine-dependent column
+            changed = False
+            for measure, columns in MEASURES:
+                todo = [job for job in cell if columns[0] not in known.get(job, {})]
+                out = Parallel(n_jobs=n_jobs, batch_size=4)(delayed(measure)(*job) for job in todo)
+                for job, values in zip(todo, out):
+                    known.setdefault(job, {}).update(zip(columns, values))
+                changed |= bool(todo)
             jobs += cell
+            if changed:
+                order = jobs + [job for job in known if job not in set(jobs)]
+                table = pd.DataFrame([{**dict(zip(JOB, job)), **known[job]} for job in order], columns=COLUMNS)
+                table.to_csv(path, index=False, float_format="%.10g")  # seconds: its one machine-dependent column
     # The table is built from the file's values, so a resumed run gives the same table as a fresh one.
     return pd.DataFrame(jobs, columns=JOB).merge(pd.read_csv(path), on=JOB, how="left", validate="one_to_one")
 
@@ -115,6 +141,8 @@ def limit_table(runs: pd.DataFrame) -> pd.DataFrame:
         rows.append({"layout": layout, "snr_db": snr, "null_pairs": len(null), "null_max": null.max(),
                      "threshold": threshold, "related_pairs": len(related),
                      "detected_rate": detected.mean(), "found_rate": (detected & related.found.to_numpy()).mean(),
+                     "consensus_found_rate": related.consensus_found.mean(),
+                     "consensus_false_merges": int(g[g.unrelated].consensus_merged.sum()),
                      "median_related_log_lr": float(np.median(related.log_lr)),
                      "median_s": float(np.median(g.seconds))})
     return pd.DataFrame(rows)
@@ -125,12 +153,15 @@ def main(argv=None) -> None:
     parser.add_argument("--trials", type=int, default=100, help="pairs per cell, null and related each")
     parser.add_argument("--out", default="results/detector")
     parser.add_argument("--n-jobs", type=int, default=2)
+    parser.add_argument("--snrs", type=float, nargs="+", default=SNRS, help="SNRs in dB (default: 0-17.5 by 2.5)")
+    parser.add_argument("--layouts", nargs="+", choices=LAYOUTS, default=LAYOUTS)
     args = parser.parse_args(argv)
     if args.trials < 8:
         raise SystemExit("--trials must be >= 8 (the null's tail fit needs them)")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    for path in save_table(limit_table(run_pairs(args.trials, args.n_jobs, out / "pairs.csv")), out / "limit"):
+    runs = run_pairs(args.trials, args.n_jobs, out / "pairs.csv", args.snrs, args.layouts)
+    for path in save_table(limit_table(runs), out / "limit"):
         print(path)
 
 

@@ -72,22 +72,31 @@ def test_limit_experiment_resumes_without_recomputing_finished_pairs(tmp_path, m
     calls = []
 
     def fake_statistic(layout, snr, seed, unrelated):
-        calls.append((layout, snr, seed, unrelated))
+        calls.append("detector")
         return float(seed % 97) + snr, not unrelated, 0.0
 
-    monkeypatch.setattr(detector, "statistic", fake_statistic)
-    monkeypatch.setattr(detector, "SNRS", np.array([0.0, 2.5]))
-    path = tmp_path / "pairs.csv"
-    fresh = detector.run_pairs(8, 1, path)
-    assert len(calls) == len(fresh) == 2 * 2 * 2 * 8
-    # Interrupted after some pairs: only the missing ones are computed again, and
-    # the table is the same as the uninterrupted run's.
-    fresh.iloc[:20].to_csv(path, index=False)
+    def fake_consensus(layout, snr, seed, unrelated):
+        calls.append("consensus")
+        return seed % 2 == 0, seed % 3 == 0 and not unrelated
+
+    monkeypatch.setattr(detector, "MEASURES", ((fake_statistic, detector.MEASURES[0][1]),
+                                               (fake_consensus, detector.MEASURES[1][1])))
+    path, snrs = tmp_path / "pairs.csv", (0.0, 2.5)
+    fresh = detector.run_pairs(8, 1, path, snrs)
+    n = 2 * 2 * 2 * 8  # layouts x SNRs x (null, related) x trials
+    assert len(fresh) == n and calls.count("detector") == calls.count("consensus") == n
+    # Interrupted after some pairs, or a measure added later: only what is
+    # missing is computed again, and the table is the uninterrupted run's.
+    partial = fresh.iloc[:20].astype({"consensus_merged": object, "consensus_found": object})
+    partial.loc[:9, ["consensus_merged", "consensus_found"]] = np.nan
+    partial.to_csv(path, index=False)
     calls.clear()
-    resumed = detector.run_pairs(8, 1, path)
-    assert len(calls) == len(fresh) - 20
+    resumed = detector.run_pairs(8, 1, path, snrs)
+    assert calls.count("detector") == n - 20 and calls.count("consensus") == n - 10
     pd.testing.assert_frame_equal(resumed, fresh)
     # A shorter run reads its pairs from the file and keeps the others in it.
     calls.clear()
-    short = detector.run_pairs(4, 1, path)
-    assert not calls and len(short) == 2 * 2 * 2 * 4 and len(pd.read_csv(path)) == len(fresh)
+    short = detector.run_pairs(4, 1, path, snrs)
+    assert not calls and len(short) == n // 2 and len(pd.read_csv(path)) == n
+    table = detector.limit_table(fresh)
+    assert list(table.consensus_false_merges) == [4] * 4  # even seeds among 8 unrelated per cell
