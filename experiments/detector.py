@@ -23,7 +23,7 @@ Fig. 1 scenario (100 landmarks per map, 75 % common):
    counts as found when it also put the transform within 1° and σ
    (``mapmerge.metrics.transform_found``);
 3. on the same pairs, ``consensus`` (``mapmerge.merge_maps`` with its
-   defaults, not told σ's truth beyond the maps' own σ, nor the prior):
+   defaults and the same σ, but not the layout's prior):
    whether it merged, and whether it found the transform. The two are
    compared pair by pair.
 
