@@ -23,9 +23,11 @@ Fig. 1 scenario (100 landmarks per map, 75 % common):
    counts as found when it also put the transform within 1° and σ
    (``mapmerge.metrics.transform_found``);
 3. on the same pairs, ``consensus`` (``mapmerge.merge_maps`` with its
-   defaults and the same σ, but not the layout's prior):
-   whether it merged, and whether it found the transform. The two are
-   compared pair by pair.
+   defaults and the same σ, but not the layout's prior): whether it merged,
+   whether it found the transform and its correct and wrong landmark pairs,
+   the latter against those of the oracle association (true transform and
+   prior, ``mapmerge.metrics.oracle_pairs_batch``) on the pairs where
+   consensus found the transform. The two are compared pair by pair.
 
 The detector knows the true σ and the layout's prior, so it is a limit (an
 oracle), not a method. From 12.5 dB on every related pair is far above the
@@ -57,8 +59,12 @@ TAIL_QUANTILE = 0.75
 TUNING_SEED, REPORTED_SEED = 300_000, 100_000
 
 
+def _pairs(layout: str, snr: float, seed: int, unrelated: bool):
+    return mm.simulate.make_pairs(100, 0.75, snr, [seed], unrelated=unrelated, layout=layout)
+
+
 def _pair(layout: str, snr: float, seed: int, unrelated: bool):
-    return mm.simulate.make_pair(100, 0.75, snr, rng=seed, unrelated=unrelated, layout=layout)
+    return _pairs(layout, snr, seed, unrelated)[0]
 
 
 def statistic(layout: str, snr: float, seed: int, unrelated: bool) -> tuple[float, bool, float]:
@@ -71,15 +77,26 @@ def statistic(layout: str, snr: float, seed: int, unrelated: bool) -> tuple[floa
     return value, (not unrelated) and mm.metrics.transform_found(sc, theta, t), seconds
 
 
-def consensus_outcome(layout: str, snr: float, seed: int, unrelated: bool) -> tuple[bool, bool]:
-    """(merged, transform found) of ``consensus`` on the same pair."""
+def consensus_outcome(layout: str, snr: float, seed: int, unrelated: bool) -> tuple[bool, bool, int, int]:
+    """(merged, transform found, correct pairs, wrong pairs) of ``consensus`` on the same pair."""
     sc = _pair(layout, snr, seed, unrelated)
-    res = mm.merge_maps(sc.p, sc.q, sc.sigma)
-    return res.matched, res.matched and not unrelated and mm.metrics.transform_found(sc, res.theta, res.t)
+    err = mm.metrics.map_errors(sc, mm.merge_maps(sc.p, sc.q, sc.sigma))
+    return err["matched"], err["matched"] and not unrelated and err["transform_found"], err["correct_pairs"], \
+        err["wrong_pairs"]
+
+
+def oracle_outcome(layout: str, snr: float, seed: int, unrelated: bool) -> tuple[int, int]:
+    """(correct, wrong) pairs of the oracle association; (0, 0) for unrelated pairs, which have no truth."""
+    if unrelated:
+        return 0, 0
+    oracle = mm.metrics.oracle_pairs_batch(_pairs(layout, snr, seed, unrelated))
+    return int(oracle["oracle_correct_pairs"][0]), int(oracle["oracle_wrong_pairs"][0])
 
 
 #: What is measured on each pair: the function and the columns it fills.
-MEASURES = ((statistic, ("log_lr", "found", "seconds")), (consensus_outcome, ("consensus_merged", "consensus_found")))
+MEASURES = ((statistic, ("log_lr", "found", "seconds")),
+            (consensus_outcome, ("consensus_merged", "consensus_found", "consensus_correct", "consensus_wrong")),
+            (oracle_outcome, ("oracle_correct", "oracle_wrong")))
 
 
 def null_threshold(null: np.ndarray) -> float:
@@ -118,7 +135,7 @@ def run_pairs(trials: int, n_jobs: int, path: Path, snrs=SNRS, layouts=LAYOUTS) 
             cell = cell_jobs(layout, snr, trials)
             changed = False
             for measure, columns in MEASURES:
-                todo = [job for job in cell if columns[0] not in known.get(job, {})]
+                todo = [job for job in cell if not set(columns) <= known.get(job, {}).keys()]
                 out = Parallel(n_jobs=n_jobs, batch_size=4)(delayed(measure)(*job) for job in todo)
                 for job, values in zip(todo, out):
                     known.setdefault(job, {}).update(zip(columns, values))
@@ -132,10 +149,15 @@ def run_pairs(trials: int, n_jobs: int, path: Path, snrs=SNRS, layouts=LAYOUTS) 
     return pd.DataFrame(jobs, columns=JOB).merge(pd.read_csv(path), on=JOB, how="left", validate="one_to_one")
 
 
+def _ratio(a, b) -> float:
+    return float(a / b) if b else float("nan")
+
+
 def limit_table(runs: pd.DataFrame) -> pd.DataFrame:
     rows = []
     for (layout, snr), g in runs.groupby(["layout", "snr_db"], sort=False):
         null, related = g[g.unrelated].log_lr.to_numpy(), g[~g.unrelated]
+        found = related[related.consensus_found.astype(bool)]
         threshold = null_threshold(null)
         detected = related.log_lr.to_numpy() >= threshold
         rows.append({"layout": layout, "snr_db": snr, "null_pairs": len(null), "null_max": null.max(),
@@ -143,6 +165,9 @@ def limit_table(runs: pd.DataFrame) -> pd.DataFrame:
                      "detected_rate": detected.mean(), "found_rate": (detected & related.found.to_numpy()).mean(),
                      "consensus_found_rate": related.consensus_found.mean(),
                      "consensus_false_merges": int(g[g.unrelated].consensus_merged.sum()),
+                     # Association where consensus found the transform, against the oracle's on those pairs.
+                     "consensus_correct_vs_oracle": _ratio(found.consensus_correct.sum(), found.oracle_correct.sum()),
+                     "consensus_wrong_vs_oracle": _ratio(found.consensus_wrong.sum(), found.oracle_wrong.sum()),
                      "median_related_log_lr": float(np.median(related.log_lr)),
                      "median_s": float(np.median(g.seconds))})
     return pd.DataFrame(rows)

@@ -77,18 +77,22 @@ def test_limit_experiment_resumes_without_recomputing_finished_pairs(tmp_path, m
 
     def fake_consensus(layout, snr, seed, unrelated):
         calls.append("consensus")
-        return seed % 2 == 0, seed % 3 == 0 and not unrelated
+        return seed % 2 == 0, seed % 3 == 0 and not unrelated, seed % 5, seed % 2
 
-    monkeypatch.setattr(detector, "MEASURES", ((fake_statistic, detector.MEASURES[0][1]),
-                                               (fake_consensus, detector.MEASURES[1][1])))
+    def fake_oracle(layout, snr, seed, unrelated):
+        calls.append("oracle")
+        return seed % 7, 1
+
+    monkeypatch.setattr(detector, "MEASURES", tuple(zip((fake_statistic, fake_consensus, fake_oracle),
+                                                        (columns for _, columns in detector.MEASURES))))
     path, snrs = tmp_path / "pairs.csv", (0.0, 2.5)
     fresh = detector.run_pairs(8, 1, path, snrs)
     n = 2 * 2 * 2 * 8  # layouts x SNRs x (null, related) x trials
     assert len(fresh) == n and calls.count("detector") == calls.count("consensus") == n
     # Interrupted after some pairs, or a measure added later: only what is
     # missing is computed again, and the table is the uninterrupted run's.
-    partial = fresh.iloc[:20].astype({"consensus_merged": object, "consensus_found": object})
-    partial.loc[:9, ["consensus_merged", "consensus_found"]] = np.nan
+    partial = fresh.iloc[:20].copy()
+    partial.loc[:9, "consensus_wrong"] = np.nan
     partial.to_csv(path, index=False)
     calls.clear()
     resumed = detector.run_pairs(8, 1, path, snrs)
@@ -100,3 +104,7 @@ def test_limit_experiment_resumes_without_recomputing_finished_pairs(tmp_path, m
     assert not calls and len(short) == n // 2 and len(pd.read_csv(path)) == n
     table = detector.limit_table(fresh)
     assert list(table.consensus_false_merges) == [4] * 4  # even seeds among 8 unrelated per cell
+    # Association is judged where consensus found the transform: seeds divisible by 3.
+    related = fresh[~fresh.unrelated & (fresh.seed % 3 == 0)]
+    assert table.consensus_correct_vs_oracle.iloc[0] == pytest.approx(
+        (related.seed % 5).iloc[:2].sum() / (related.seed % 7).iloc[:2].sum())
