@@ -127,7 +127,7 @@ def write_tables(out: Path) -> list[Path]:
     if not tables:
         raise FileNotFoundError(f"no */table.csv below {out}: run without --tables first")
     table = pd.concat([with_timing(t) for t in tables], ignore_index=True)
-    comp = comparison_table(table)
+    comp = keep_timings(comparison_table(table), out / "compare.csv")
     detector = out.parent / "detector" / "limit.csv"
     limit = pd.read_csv(detector) if detector.exists() else None
     paths = [*save_table(comp, out / "compare"), summary(comp, out / "summary.md"), *success_figure(comp, out, limit)]
@@ -135,6 +135,20 @@ def write_tables(out: Path) -> list[Path]:
     if limit is not None:
         paths += save_table(crossing(comp, limit), out / "crossing")
     return paths
+
+
+def keep_timings(comp: pd.DataFrame, previous: Path) -> pd.DataFrame:
+    """Times missing from ``comp`` (git keeps no ``timing.csv``: tables rebuilt
+    from a clone) taken from the ``compare.csv`` last written, so that
+    ``--tables`` on a clone rewrites the same files."""
+    if not previous.is_file() or comp.median_ms_per_merge.notna().all():
+        return comp
+    keys = ["n_landmarks", "overlap", "layout", "snr_db", "method", "tau"]
+    old = pd.read_csv(previous).set_index(keys).median_ms_per_merge
+    missing = comp.median_ms_per_merge.isna()
+    at = pd.MultiIndex.from_frame(comp.loc[missing, keys])
+    comp.loc[missing, "median_ms_per_merge"] = old.reindex(at).to_numpy()
+    return comp
 
 
 def wilson(successes, n, level: float = 0.95) -> tuple[np.ndarray, np.ndarray]:
