@@ -142,7 +142,8 @@ def run_pairs(trials: int, n_jobs: int, path: Path, snrs=SNRS, layouts=LAYOUTS) 
                 changed |= bool(todo)
             jobs += cell
             if changed:
-                order = jobs + [job for job in known if job not in set(jobs)]
+                listed = set(jobs)
+                order = jobs + [job for job in known if job not in listed]
                 table = pd.DataFrame([{**dict(zip(JOB, job)), **known[job]} for job in order], columns=COLUMNS)
                 table.to_csv(path, index=False, float_format="%.10g")  # seconds: its one machine-dependent column
     # The table is built from the file's values, so a resumed run gives the same table as a fresh one.
