@@ -28,6 +28,7 @@ import mapmerge as mm
 from mapmerge import metrics
 from mapmerge.datasets import victoria_park
 from mapmerge.merging import get_method, match_stage, merge_at
+from mapmerge.search import SearchMemo
 from mapmerge.simulate import ScenarioBatch, check_scenario
 
 SCENARIO_KEYS = ("n_landmarks", "overlap", "snr_db", "aspect", "unrelated", "layout", "p_detect", "clutter",
@@ -159,12 +160,15 @@ def _run_slice(root_seed: int, scenario: dict, matcher: dict, ks: np.ndarray):
     n_common = None if match is None else metrics.common_triangle_counts(sc.ids_p, sc.ids_q, match.tri_p,
                                                                          match.tri_q)
     columns, last = [], None
+    # The rules' merges of the same maps share consensus's global searches (τ-independent).
+    memo = SearchMemo()
     for rule in taus:
         clock = time.perf_counter()
         log_tau = rule_log_tau(rule, match, lp_true, B)
         declared = None if match is None else match.log_lr >= log_tau[match.trial]
         if last is None:
-            row = _evaluate(sc, match, log_tau, method.name, covariances, n_common, lp_true, lp_consistent, first_pose)
+            row = _evaluate(sc, match, log_tau, method.name, covariances, n_common, lp_true, lp_consistent, first_pose,
+                            memo)
         else:
             # A trial whose declared pairs did not change merges as under the previous rule.
             row = {key: value.copy() for key, value in last[1].items()}
@@ -173,7 +177,7 @@ def _run_slice(root_seed: int, scenario: dict, matcher: dict, ks: np.ndarray):
                 part = _evaluate(sc.take(sub), match.take(sub), log_tau[sub], method.name,
                                  {k: v[sub] for k, v in covariances.items()}, n_common[sub],
                                  lp_true[np.isin(match.trial, sub)], lp_consistent[np.isin(match.trial, sub)],
-                                 first_pose)
+                                 first_pose, memo)
                 for key, value in part.items():
                     row[key][sub] = value
         last = declared, row
@@ -193,13 +197,14 @@ def _run_slice(root_seed: int, scenario: dict, matcher: dict, ks: np.ndarray):
     return trials, pairs
 
 
-def _evaluate(sc, match, log_tau, method, covariances, n_common, lp_true, lp_consistent, first_pose=None) -> dict:
+def _evaluate(sc, match, log_tau, method, covariances, n_common, lp_true, lp_consistent, first_pose=None,
+              search_memo=None) -> dict:
     """Merge at log τ and score against the truth: detection counts and map errors per trial.
 
     ``first_pose`` (θ, t) of a real data set adds the errors against its
     second truth, the transform between the agents' first poses.
     """
-    merged = merge_at(sc.p, sc.q, sc.sigma, match, log_tau, method, **covariances)
+    merged = merge_at(sc.p, sc.q, sc.sigma, match, log_tau, method, **covariances, search_memo=search_memo)
     if n_common is None:
         n_common = metrics.common_triangle_counts(sc.ids_p, sc.ids_q, merged.tri_p, merged.tri_q)
     if match is not None and merged.triangle_pairs is match.triangle_pairs:

@@ -103,25 +103,28 @@ def match_stage(P: np.ndarray, Q: np.ndarray, sigma: np.ndarray, method: str, ob
 
 
 def merge_at(P: np.ndarray, Q: np.ndarray, sigma: np.ndarray, match: TriangleMatch | None, log_tau: np.ndarray,
-             method: str, cov_p=None, cov_q=None, rng=None) -> MergeBatch:
+             method: str, cov_p=None, cov_q=None, rng=None, search_memo=None) -> MergeBatch:
     """Declare at log τ (one per map pair), associate landmarks and combine (valid inputs).
 
     ``cov_p``/``cov_q`` (B, n, 2, 2): the landmarks' own covariances, used by
     consensus's gates (their per-coordinate variance) and by the fusion of
-    every method's combined map (information weighting).
+    every method's combined map (information weighting). ``search_memo``
+    (a ``search.SearchMemo``) lets calls on the same map pairs at other
+    thresholds reuse consensus's global searches.
     """
-    batch = _merge_at(P, Q, sigma, match, log_tau, method, cov_p, cov_q, rng)
+    batch = _merge_at(P, Q, sigma, match, log_tau, method, cov_p, cov_q, rng, search_memo)
     return batch if cov_p is None else batch.with_covariances(cov_p, cov_q)
 
 
-def _merge_at(P, Q, sigma, match, log_tau, method, cov_p, cov_q, rng) -> MergeBatch:
+def _merge_at(P, Q, sigma, match, log_tau, method, cov_p, cov_q, rng, search_memo=None) -> MergeBatch:
     m = get_method(method)
     if m.baseline is not None:
         return m.baseline(P, Q, sigma, *triangulate_batches(P, Q), rng)
     if m.name == "search":
         return search.search_merge(P, Q, sigma, *triangulate_batches(P, Q), cov_p, cov_q)
     if m.name == "consensus":
-        return consensus.consensus_merge(P, Q, sigma, match, log_tau, cov_p, cov_q, fallback=search.search_pairs)
+        return consensus.consensus_merge(P, Q, sigma, match, log_tau, cov_p, cov_q,
+                                         fallback=search_memo or search.search_pairs)
     declared = match.log_lr >= log_tau[match.trial]
     # Landmark indices offset by pair so that one call resolves every pair's conflicts.
     n = max(P.shape[1], Q.shape[1])

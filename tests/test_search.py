@@ -65,3 +65,19 @@ def test_search_on_large_maps_votes_with_thinned_maps_and_finds_the_transform():
     assert transform_found(sc, res)
     unrelated = mm.simulate.make_pair(2000, 0.75, 15.0, rng=3, unrelated=True)
     assert not mm.merge_maps(unrelated.p, unrelated.q, unrelated.sigma, method="search").matched
+
+
+def test_search_memo_answers_repeated_searches_once_and_bit_for_bit(monkeypatch):
+    sc = mm.simulate.make_pair(40, 0.75, 20, rng=7)
+    first = search.search_pairs(sc.p, sc.q, sc.sigma)
+    assert len(first[0]) >= 3
+    calls = []
+    real = search.search_pairs
+    monkeypatch.setattr(search, "search_pairs", lambda *a: calls.append(1) or real(*a))
+    memo = search.SearchMemo()
+    a = memo(sc.p, sc.q, sc.sigma)
+    a[0][:] = -1  # the caller's copy, not the memo's
+    b = memo(sc.p, sc.q, sc.sigma)
+    assert len(calls) == 1 and np.array_equal(b[0], first[0]) and np.array_equal(b[1], first[1]) and b[2] == first[2]
+    memo(sc.p, sc.q, sc.sigma, sc.cov_p, sc.cov_q)  # other inputs: searched again
+    assert len(calls) == 2
