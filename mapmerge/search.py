@@ -233,7 +233,8 @@ class SearchMemo:
     def __call__(self, P, Q, sigma: float, cov_p=None, cov_q=None):
         digest = hashlib.sha256()
         for part in (P, Q, np.float64(sigma), cov_p, cov_q):
-            digest.update(b"-" if part is None else np.ascontiguousarray(part).tobytes())
+            part = np.empty(0) if part is None else np.ascontiguousarray(part, dtype=float)
+            digest.update(repr(part.shape).encode() + part.tobytes())
         key = digest.digest()
         if key not in self._answers:
             self._answers[key] = search_pairs(P, Q, sigma, cov_p, cov_q)
