@@ -17,7 +17,7 @@ without any correspondence:
    n-point closed form, the pairing radius halved each round from the vote
    cell's down to 2r (``REFINE_ROUNDS``), then by EM on the mixture model of
    ``mapmerge.exhaustive`` (every q landmark inside p's hull is, with prior
-   ``SHARED_PRIOR``, a noisy copy of some p landmark, otherwise anywhere).
+   ``MIXTURE_PRIOR``, a noisy copy of some p landmark, otherwise anywhere).
 4. Acceptance is a contrario on that model's log-likelihood ratio Λ: for a
    fixed transform, unrelated maps put q's landmarks uniformly over p's
    hull, and ``exhaustive.null_log_tail`` bounds P(Λ >= observed) by
@@ -51,13 +51,17 @@ import numpy as np
 from scipy.spatial import ConvexHull, cKDTree
 
 from .alignment import align_pairs, rotate, rotation
-from .consensus import SHARED_PRIOR, associate, declared_triangles
+from .consensus import associate, declared_triangles
 from .exhaustive import bump_height, em_refine, exact_log_lr, inside_hull, null_log_tail, pair_noise
 from .result import MergeBatch, build_from_parts
 from .triangles import TriangleBatch
 
 #: Hypotheses refined (the fullest translation windows, at distinct rotations).
 N_PEAKS = 8
+#: Prior π of the mixture model that refines and tests a hypothesis: neutral
+#: (log-odds 0). The test is calibrated by its own null tail for any fixed π,
+#: so this is part of the statistic, not a guess at the overlap.
+MIXTURE_PRIOR = 0.5
 #: Nearest-neighbour refit rounds of a hypothesis before the association.
 REFINE_ROUNDS = 4
 #: A match is accepted when its number of false alarms is at most this: an
@@ -167,14 +171,14 @@ def _log_nfa(P, Q, hypotheses, s: float, n_hypotheses: float):
     """log NFA of each hypothesis after EM, the a contrario mixture test (module docstring, step 4),
     and the hypotheses moved to the EM's transforms."""
     hull = ConvexHull(P)
-    c = bump_height(len(P), hull.volume, s, SHARED_PRIOR)
+    c = bump_height(len(P), hull.volume, s, MIXTURE_PRIOR)
     log_lr, n_inside, fitted = [], [], []
     for al in hypotheses:
         theta, t = em_refine(P, Q, al.theta, al.t, s, c, hull)
         fitted.append(dataclasses.replace(al, theta=theta, t=t))
-        log_lr.append(exact_log_lr(P, Q, theta, t, s, c, SHARED_PRIOR, hull))
+        log_lr.append(exact_log_lr(P, Q, theta, t, s, c, MIXTURE_PRIOR, hull))
         n_inside.append(int(np.sum(inside_hull(hull, rotate(-theta, Q - t)))))
-    return np.log(n_hypotheses) + null_log_tail(log_lr, n_inside, P, hull, s, c, SHARED_PRIOR), fitted
+    return np.log(n_hypotheses) + null_log_tail(log_lr, n_inside, P, hull, s, c, MIXTURE_PRIOR), fitted
 
 
 def search_pairs(P, Q, sigma: float, cov_p=None, cov_q=None):
