@@ -37,7 +37,6 @@ The statistic is then compared with a threshold measured on unrelated pairs
 from __future__ import annotations
 
 import numpy as np
-from scipy.signal import fftconvolve
 from scipy.spatial import ConvexHull, cKDTree
 
 from .alignment import rotate
@@ -231,6 +230,10 @@ def _grid_peaks(P, Q, s, c, p_shared, hull):
     hull is a correlation of two rasters (both by FFT), and the best cell is
     kept; these are ranked by their exact Λ.
     """
+    # Imported here: scipy.signal takes about a second to import, which every
+    # ``import mapmerge`` would pay for this one function.
+    from scipy.signal import fftconvolve
+
     pm, qm = P.mean(axis=0), Q.mean(axis=0)
     pc, qc = P - pm, Q - qm
     reach = np.sqrt(np.max(np.sum(pc**2, axis=1)))

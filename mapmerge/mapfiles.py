@@ -15,11 +15,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import pandas as pd
 
 from .result import MergeResult
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 COVARIANCE_COLUMNS = ("sxx", "sxy", "syy")
 
@@ -72,6 +75,8 @@ def read_map(source) -> LandmarkMap:
         a non-numeric or missing cell, fewer than 3 rows, a covariance that
         is not positive definite.
     """
+    import pandas as pd  # here, not at the top: ``import mapmerge`` need not load pandas
+
     if isinstance(source, pd.DataFrame):
         table, name = source, "DataFrame"
     else:
@@ -125,6 +130,8 @@ def combined_table(result: MergeResult, map_p: LandmarkMap | None = None,
 
     ``index_p``/``index_q`` are 0-based rows of the input maps (-1: none).
     """
+    import pandas as pd
+
     c = result.combined
     table = pd.DataFrame({"x": c.points[:, 0], "y": c.points[:, 1], "origin": c.origin.astype(str),
                           "index_p": c.index_p, "index_q": c.index_q})

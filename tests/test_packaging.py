@@ -61,3 +61,11 @@ def test_a_wheel_installs_and_runs_a_sweep_from_elsewhere(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "mapmerge", "merge", "--help"], cwd=work, env=env,
                           capture_output=True, text=True, check=True)
     assert "--sigma" in proc.stdout
+
+
+def test_import_mapmerge_leaves_heavy_modules_for_the_functions_that_need_them():
+    # scipy.signal (about a second) serves only the exhaustive detector, pandas only map files:
+    # a user's `import mapmerge` and every `mapmerge merge` call would pay for them otherwise.
+    code = "import sys, mapmerge; print(sorted(m for m in ('scipy.signal', 'pandas') if m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
