@@ -96,6 +96,9 @@ def success_figure(comp: pd.DataFrame, out: Path, limit: pd.DataFrame | None = N
                 lim = limit[limit.layout == layout]
                 top.plot(lim.snr_db, lim.found_rate, color="k", lw=1.4, ls=":",
                          label="limit: exhaustive ML detector (true σ)")
+                if "ml_accurate_rate" in lim:
+                    top.plot(lim.snr_db, lim.ml_accurate_rate, color="0.5", lw=1.0, ls=":",
+                             label="ML transform accurate, no threshold")
             if "oracle_wrong_per_trial" in part:
                 # Same trials for every method: the oracle's curve is one.
                 oracle = part.sort_values("n_trials", ascending=False).groupby("snr_db").oracle_wrong_per_trial.first()

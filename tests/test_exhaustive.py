@@ -108,3 +108,6 @@ def test_limit_experiment_resumes_without_recomputing_finished_pairs(tmp_path, m
     related = fresh[~fresh.unrelated & (fresh.seed % 3 == 0)]
     assert table.consensus_correct_vs_oracle.iloc[0] == pytest.approx(
         (related.seed % 5).iloc[:2].sum() / (related.seed % 7).iloc[:2].sum())
+    # fake_statistic finds every related transform: accurate whatever the threshold, found only above it.
+    assert list(table.ml_accurate_rate) == [1.0] * 4
+    assert (table.found_rate == table.detected_rate).all() and (table.found_rate <= table.ml_accurate_rate).all()
