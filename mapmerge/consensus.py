@@ -92,8 +92,9 @@ AMBIGUITY = np.log(1000.0)
 #: pairs, so a low π, so few pairs); started at 0.8 it pairs 0.94-0.98x the
 #: oracle association's correct pairs with 1.01-1.09x its wrong ones (0.5:
 #: 0.65-0.77x / 0.73-0.80x) and finds the transform in 110 instead of 84 of
-#: 150 strip pairs. Chosen on tuning seeds 400000-400149 (strip, interleaved,
-#: 10-15 dB) and 420000-420099 (interleaved with clutter and covariances);
+#: 150 strip pairs (7.5 dB: 30 instead of 4; 20 dB: all either way). Chosen
+#: on tuning seeds 400000-400149 (strip, interleaved, 7.5-20 dB) and
+#: 420000-420099 (interleaved with clutter and covariances);
 #: 0.9 gave 1.13x the oracle's wrong pairs on the latter. No unrelated pair of
 #: 3,000 (seeds 430000-430499, 5-15 dB) merged.
 SHARED_PRIOR = 0.8
