@@ -197,6 +197,12 @@ def summary_table(trials: pd.DataFrame) -> pd.DataFrame:
         t["oracle_wrong_per_trial"] = g["oracle_wrong_pairs"].mean()
         t["correct_vs_oracle"] = _ratio(lm.correct_pairs, oracle.oracle_correct_pairs)
         t["wrong_vs_oracle"] = _ratio(lm.wrong_pairs, oracle.oracle_wrong_pairs)
+        # The same on the trials whose transform was found: below about 15 dB even the oracle pairs
+        # few landmarks, so association is judged apart from whether the transform was found.
+        found = trials[["correct_pairs", "wrong_pairs", "oracle_correct_pairs", "oracle_wrong_pairs"]].where(
+            trials["transform_found"].astype(bool), 0).groupby([trials[k] for k in keys]).sum()
+        t["correct_vs_oracle_found"] = _ratio(found.correct_pairs, found.oracle_correct_pairs)
+        t["wrong_vs_oracle_found"] = _ratio(found.wrong_pairs, found.oracle_wrong_pairs)
     return t.reset_index()
 
 

@@ -68,7 +68,8 @@ def comparison_table(table: pd.DataFrame) -> pd.DataFrame:
     out["n_trials_unrelated"] = out.n_trials_unrelated.astype("Int64")
     cols = KEYS + ["n_trials", "recall_common", "recall_glrt", "fp_per_trial", "correct_per_trial",
                    "wrong_per_trial", "oracle_correct_per_trial", "oracle_wrong_per_trial", "landmark_precision",
-                   "landmark_recall", "success_rate", "found_rate", "false_merges", "n_trials_unrelated",
+                   "landmark_recall", "success_rate", "found_rate", "correct_vs_oracle_found",
+                   "wrong_vs_oracle_found", "false_merges", "n_trials_unrelated",
                    "median_ms_per_merge"]
     return out[[c for c in cols if c in out]].sort_values(["n_landmarks", "overlap", "layout", "method", "tau",
                                                            "snr_db"])
@@ -178,7 +179,9 @@ def found_table(comp: pd.DataFrame) -> pd.DataFrame:
     names = {"method": "method", "layout": "layout", "snr_db": "SNR", "n_trials": "pairs",
              "found_rate": "transform found", "found_low": "95 % low", "found_high": "95 % high",
              "false_merges": "false merges", "n_trials_unrelated": "unrelated pairs",
-             "false_high": "false-merge rate, 95 % high", "median_ms_per_merge": "ms per merge"}
+             "false_high": "false-merge rate, 95 % high",
+             "correct_vs_oracle_found": "correct vs oracle (found)", "wrong_vs_oracle_found": "wrong vs oracle (found)",
+             "median_ms_per_merge": "ms per merge"}
     s["order"] = s.method.map({m: k for k, m in enumerate(METHOD_ORDER)})
     s = s.sort_values(["order", "layout", "snr_db"], key=lambda c: c != "strip" if c.name == "layout" else c)
     return s[[c for c in names if c in s]].rename(columns=names)

@@ -115,6 +115,12 @@ def test_compare_sweep_tables_and_figure_on_both_layouts(tmp_path):
     found = pd.read_csv(out / "found.csv")
     assert set(found.layout) == {"strip", "interleaved"} and (found["95 % low"] <= found["transform found"]).all()
     assert found["false merges"].eq(0).all() and found["false-merge rate, 95 % high"].between(0.3, 0.5).all()
+    # Every transform found at 30 dB: the association on found pairs is the association on all pairs.
+    both = found.merge(consensus[consensus.tau != "oracle"], left_on=["layout", "SNR"], right_on=["layout", "snr_db"])
+    assert len(both) == 2
+    assert np.allclose(both["correct vs oracle (found)"], both.correct_per_trial / both.oracle_correct_per_trial)
+    assert np.allclose(both["wrong vs oracle (found)"], both.wrong_per_trial / both.oracle_wrong_per_trial,
+                       equal_nan=True)
     crossing = pd.read_csv(out / "crossing.csv").set_index(["layout", "method"])
     assert crossing.loc[("strip", "consensus"), "behind the detector (dB)"] == 0
     # Rebuilt where git has no timing.csv (a clone): the times last written are kept.
