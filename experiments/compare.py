@@ -24,7 +24,9 @@ maps. Then writes:
   false merges on unrelated pairs and the median time per merge;
 * ``summary.md``: the same at 10-40 dB in 10 dB steps;
 * ``found.md`` / ``.csv``: consensus and the search alone, transform found
-  with its 95 % Wilson interval and false merges, every SNR;
+  with its 95 % Wilson interval, false merges, and correct and wrong
+  landmark pairs against the oracle association's on the pairs whose
+  transform was found, every SNR;
 * ``crossing.md`` / ``.csv`` (when ``results/detector/limit.csv`` exists,
   ``python -m experiments.detector``): the SNR at which each method and
   the exhaustive ML detector find 90 % of the transforms;
@@ -171,7 +173,8 @@ LOW_SNR_METHODS = ("consensus", "search")
 
 
 def found_table(comp: pd.DataFrame) -> pd.DataFrame:
-    """``found.md``: transform found with its 95 % Wilson interval and false merges, per method of
+    """``found.md``: transform found with its 95 % Wilson interval, false merges and the association on found
+    pairs against the oracle's, per method of
     ``LOW_SNR_METHODS``, layout and SNR (the low-SNR targets)."""
     s = comp[(comp.tau != "oracle") & comp.method.isin(LOW_SNR_METHODS)].copy()
     s["found_low"], s["found_high"] = wilson(np.round(s.found_rate * s.n_trials), s.n_trials)
