@@ -66,8 +66,9 @@ MIXTURE_PRIOR = 0.5
 REFINE_ROUNDS = 4
 #: A match is accepted when its number of false alarms is at most this: an
 #: unrelated pair of maps passes with probability at most about this at a
-#: fixed transform. The search maximises over a continuum (refits, EM), so at
-#: 0-2.5 dB more pass: 4 of 2,000 unrelated tuning pairs (seeds 430000-430499).
+#: fixed transform. Where the pair noise r exceeds about 0.65 landmark spacings
+#: (0-2.5 dB) more pass: 14 of 6,000 unrelated tuning pairs (seeds
+#: 430000-430499, 440000-440999); from 5 dB up none of 12,000.
 SEARCH_NFA = 1e-4
 #: Landmarks per map used to vote; larger maps vote with about this many (``_thinned``).
 MAX_SEARCH_LANDMARKS = 300
