@@ -66,10 +66,16 @@ MIXTURE_PRIOR = 0.5
 REFINE_ROUNDS = 4
 #: A match is accepted when its number of false alarms is at most this: an
 #: unrelated pair of maps passes with probability at most about this at a
-#: fixed transform. Where the pair noise r exceeds about 0.65 landmark spacings
-#: (0-2.5 dB) more pass: 14 of 6,000 unrelated tuning pairs (seeds
-#: 430000-430499, 440000-440999); from 5 dB up none of 12,000.
+#: fixed transform (from 5 dB up, none of 12,000 unrelated tuning pairs passed).
 SEARCH_NFA = 1e-4
+#: The search declines when the pair noise r exceeds this many landmark
+#: spacings of p (``sqrt(hull area / n_p)``): every q landmark then has a
+#: chance partner within the noise, and the bound of step 4 no longer holds
+#: over the search as a whole. On unrelated tuning pairs (seeds 430000-430499,
+#: 440000-440999) 14 of 6,000 at 0-2.5 dB passed ``SEARCH_NFA`` (smallest NFA
+#: 2e-10), every one with r >= 0.65 spacings; the related tuning pairs whose
+#: transform the search found (400000-400199, 5-12.5 dB) all had r <= 0.58.
+MAX_NOISE_SPACING = 0.6
 #: Landmarks per map used to vote; larger maps vote with about this many (``_thinned``).
 MAX_SEARCH_LANDMARKS = 300
 #: Larger maps vote with the landmarks whose distance to their ``THIN_RANK``-th
@@ -200,9 +206,13 @@ def search_pairs(P, Q, sigma: float, cov_p=None, cov_q=None):
         Associations (empty when no hypothesis is significant).
     contested : (K,) bool ndarray
     nfa : float
-        Number of false alarms of the best hypothesis (inf when none could be refined).
+        Number of false alarms of the best hypothesis (inf when none could be
+        refined, or the noise exceeds ``MAX_NOISE_SPACING`` landmark spacings).
     """
     r = pair_noise(sigma, cov_p, cov_q)
+    empty = np.empty((0, 2), dtype=np.intp), np.empty(0, dtype=bool)
+    if r > MAX_NOISE_SPACING * np.sqrt(ConvexHull(P).volume / len(P)):
+        return *empty, np.inf
     Ps, Qs = _thinned(P, MAX_SEARCH_LANDMARKS), _thinned(Q, MAX_SEARCH_LANDMARKS)
     thetas, ts, cell, n_hyp = _hypotheses(Ps, Qs, r)
     refined = []
@@ -213,7 +223,6 @@ def search_pairs(P, Q, sigma: float, cov_p=None, cov_q=None):
             al = _refine(P, Q, al.theta, al.t, r, r, sigma)
         if al is not None:
             refined.append(al)
-    empty = np.empty((0, 2), dtype=np.intp), np.empty(0, dtype=bool)
     if not refined:
         return *empty, np.inf
     log_nfa, refined = _log_nfa(P, Q, refined, r, n_hyp)
