@@ -28,6 +28,9 @@ without any correspondence:
    ``consensus.associate``. Λ pools the evidence of every landmark, weighed
    by how close it lies to its partner, which no single landmark carries at
    10 dB, where a chance partner lies within the noise of most landmarks.
+   Where the noise exceeds ``MAX_NOISE_SPACING`` landmark spacings (about
+   0-2.5 dB) the bound fails over the search as a whole, and the maps hold
+   no transform a search could find: the search then declines.
 
 The search costs O(n_θ n_p n_q): on maps above ``MAX_SEARCH_LANDMARKS``
 landmarks the votes use about that many per map, the ones whose distance

@@ -81,3 +81,18 @@ def test_search_memo_answers_repeated_searches_once_and_bit_for_bit(monkeypatch)
     assert len(calls) == 1 and np.array_equal(b[0], first[0]) and np.array_equal(b[1], first[1]) and b[2] == first[2]
     memo(sc.p, sc.q, sc.sigma, sc.cov_p, sc.cov_q)  # other inputs: searched again
     assert len(calls) == 2
+
+
+def test_search_declines_where_the_noise_is_comparable_to_the_landmark_spacing():
+    # At 0 dB the pair noise is 0.65-1.3 landmark spacings: there the search's null bound fails
+    # (unrelated pairs passed it at NFA 2e-10), so the search must not run; at 10 dB it does.
+    from scipy.spatial import ConvexHull
+
+    from mapmerge.exhaustive import pair_noise
+
+    for rng, snr, declines in ((60, 0.0, True), (61, 0.0, True), (60, 10.0, False)):
+        sc = mm.simulate.make_pair(100, 0.75, snr, rng=rng, unrelated=snr == 0.0)
+        spacing = np.sqrt(ConvexHull(sc.p).volume / len(sc.p))
+        assert (pair_noise(sc.sigma) > search.MAX_NOISE_SPACING * spacing) == declines
+        pairs, _, nfa = search.search_pairs(sc.p, sc.q, sc.sigma)
+        assert (nfa == np.inf) == declines and (len(pairs) == 0 or not declines)
