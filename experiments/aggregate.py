@@ -161,7 +161,8 @@ def _roc(cell: tuple, g: pd.DataFrame) -> tuple[pd.DataFrame, dict]:
     }
 
 
-def _ratio(num, den):
+def ratio(num, den):
+    """num / den, NaN where den is 0 (counts: a rate with no cases is unknown, not 0)."""
     return np.where(den > 0, num / np.maximum(den, 1), np.nan)
 
 
@@ -170,15 +171,15 @@ def summary_table(trials: pd.DataFrame) -> pd.DataFrame:
     g = trials.groupby(keys, sort=True)
     t = g[["tp", "fp", "md", "tn", "common", "unpaired", "wrong_pairs", "duplicates"]].sum()
     t.insert(0, "n_trials", g.size())
-    t["precision"] = _ratio(t.tp, t.tp + t.fp)
-    t["md_rate"] = _ratio(t.md, t.tp + t.md)
-    t["p_d"] = _ratio(t.tp, t.tp + t.md)
-    t["p_fa"] = _ratio(t.fp, t.fp + t.tn)
-    t["recall_common"] = _ratio(t.tp, t.common)
+    t["precision"] = ratio(t.tp, t.tp + t.fp)
+    t["md_rate"] = ratio(t.md, t.tp + t.md)
+    t["p_d"] = ratio(t.tp, t.tp + t.md)
+    t["p_fa"] = ratio(t.fp, t.fp + t.tn)
+    t["recall_common"] = ratio(t.tp, t.common)
     t["trials_with_fp"] = (trials["fp"] > 0).groupby([trials[k] for k in keys]).sum()
     lm = g[["correct_pairs", "wrong_pairs", "n_common_landmarks"]].sum()
-    t["landmark_precision"] = _ratio(lm.correct_pairs, lm.correct_pairs + lm.wrong_pairs)
-    t["landmark_recall"] = _ratio(lm.correct_pairs, lm.n_common_landmarks)
+    t["landmark_precision"] = ratio(lm.correct_pairs, lm.correct_pairs + lm.wrong_pairs)
+    t["landmark_recall"] = ratio(lm.correct_pairs, lm.n_common_landmarks)
     t["false_merge_rate"] = g["false_merge"].mean()
     t["matched_rate"] = g["matched"].mean()
     t["success_rate"] = g["success"].mean()
@@ -187,7 +188,7 @@ def summary_table(trials: pd.DataFrame) -> pd.DataFrame:
         [trials[k] for k in keys]).median()
     t["mean_log_tau"] = g["log_tau"].mean()
     # Triangles declared by the GLRT test alone (consensus also declares those its association implies).
-    t["recall_glrt"] = _ratio(t.tp - g["tp_implied"].sum(), t.common)
+    t["recall_glrt"] = ratio(t.tp - g["tp_implied"].sum(), t.common)
     t["found_rate"] = g["transform_found"].mean()
     t["correct_per_trial"] = g["correct_pairs"].mean()
     t["wrong_per_trial"] = g["wrong_pairs"].mean()
@@ -195,14 +196,14 @@ def summary_table(trials: pd.DataFrame) -> pd.DataFrame:
         oracle = g[["oracle_correct_pairs", "oracle_wrong_pairs"]].sum()
         t["oracle_correct_per_trial"] = g["oracle_correct_pairs"].mean()
         t["oracle_wrong_per_trial"] = g["oracle_wrong_pairs"].mean()
-        t["correct_vs_oracle"] = _ratio(lm.correct_pairs, oracle.oracle_correct_pairs)
-        t["wrong_vs_oracle"] = _ratio(lm.wrong_pairs, oracle.oracle_wrong_pairs)
+        t["correct_vs_oracle"] = ratio(lm.correct_pairs, oracle.oracle_correct_pairs)
+        t["wrong_vs_oracle"] = ratio(lm.wrong_pairs, oracle.oracle_wrong_pairs)
         # The same on the trials whose transform was found: below about 15 dB even the oracle pairs
         # few landmarks, so association is judged apart from whether the transform was found.
         found = trials[["correct_pairs", "wrong_pairs", "oracle_correct_pairs", "oracle_wrong_pairs"]].where(
             trials["transform_found"].astype(bool), 0).groupby([trials[k] for k in keys]).sum()
-        t["correct_vs_oracle_found"] = _ratio(found.correct_pairs, found.oracle_correct_pairs)
-        t["wrong_vs_oracle_found"] = _ratio(found.wrong_pairs, found.oracle_wrong_pairs)
+        t["correct_vs_oracle_found"] = ratio(found.correct_pairs, found.oracle_correct_pairs)
+        t["wrong_vs_oracle_found"] = ratio(found.wrong_pairs, found.oracle_wrong_pairs)
     return t.reset_index()
 
 

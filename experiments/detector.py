@@ -52,7 +52,7 @@ from joblib import Parallel, delayed
 import mapmerge as mm
 from mapmerge.consensus import SHARED_RANGE
 
-from .aggregate import save_table
+from .aggregate import ratio, save_table
 
 SNRS = tuple(np.arange(0.0, 17.51, 2.5))
 LAYOUTS = ("strip", "interleaved")
@@ -154,10 +154,6 @@ def run_pairs(trials: int, n_jobs: int, path: Path, snrs=SNRS, layouts=LAYOUTS) 
     return pd.DataFrame(jobs, columns=JOB).merge(pd.read_csv(path), on=JOB, how="left", validate="one_to_one")
 
 
-def _ratio(a, b) -> float:
-    return float(a / b) if b else float("nan")
-
-
 def limit_table(runs: pd.DataFrame) -> pd.DataFrame:
     rows = []
     for (layout, snr), g in runs.groupby(["layout", "snr_db"], sort=False):
@@ -173,8 +169,8 @@ def limit_table(runs: pd.DataFrame) -> pd.DataFrame:
                      "consensus_found_rate": related.consensus_found.mean(),
                      "consensus_false_merges": int(g[g.unrelated].consensus_merged.sum()),
                      # Association where consensus found the transform, against the oracle's on those pairs.
-                     "consensus_correct_vs_oracle": _ratio(found.consensus_correct.sum(), found.oracle_correct.sum()),
-                     "consensus_wrong_vs_oracle": _ratio(found.consensus_wrong.sum(), found.oracle_wrong.sum()),
+                     "consensus_correct_vs_oracle": float(ratio(found.consensus_correct.sum(), found.oracle_correct.sum())),
+                     "consensus_wrong_vs_oracle": float(ratio(found.consensus_wrong.sum(), found.oracle_wrong.sum())),
                      "median_related_log_lr": float(np.median(related.log_lr)),
                      "median_s": float(np.median(g.seconds))})
     return pd.DataFrame(rows)

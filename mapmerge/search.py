@@ -179,10 +179,9 @@ def _refine(P, Q, theta, t, r, cell, sigma):
     return al
 
 
-def _log_nfa(P, Q, hypotheses, s: float, n_hypotheses: float):
+def _log_nfa(P, Q, hypotheses, s: float, n_hypotheses: float, hull):
     """log NFA of each hypothesis after EM, the a contrario mixture test (module docstring, step 4),
-    and the hypotheses moved to the EM's transforms."""
-    hull = ConvexHull(P)
+    and the hypotheses moved to the EM's transforms (``hull``: p's convex hull)."""
     c = bump_height(len(P), hull.volume, s, MIXTURE_PRIOR)
     log_lr, n_inside, fitted = [], [], []
     for al in hypotheses:
@@ -214,7 +213,8 @@ def search_pairs(P, Q, sigma: float, cov_p=None, cov_q=None):
     """
     r = pair_noise(sigma, cov_p, cov_q)
     empty = np.empty((0, 2), dtype=np.intp), np.empty(0, dtype=bool)
-    if r > MAX_NOISE_SPACING * np.sqrt(ConvexHull(P).volume / len(P)):
+    hull = ConvexHull(P)
+    if r > MAX_NOISE_SPACING * np.sqrt(hull.volume / len(P)):
         return *empty, np.inf
     Ps, Qs = _thinned(P, MAX_SEARCH_LANDMARKS), _thinned(Q, MAX_SEARCH_LANDMARKS)
     thetas, ts, cell, n_hyp = _hypotheses(Ps, Qs, r)
@@ -228,7 +228,7 @@ def search_pairs(P, Q, sigma: float, cov_p=None, cov_q=None):
             refined.append(al)
     if not refined:
         return *empty, np.inf
-    log_nfa, refined = _log_nfa(P, Q, refined, r, n_hyp)
+    log_nfa, refined = _log_nfa(P, Q, refined, r, n_hyp, hull)
     best = int(np.argmin(log_nfa))
     nfa = float(np.exp(min(log_nfa[best], 700.0)))
     if log_nfa[best] > np.log(SEARCH_NFA):
