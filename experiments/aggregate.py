@@ -192,18 +192,23 @@ def summary_table(trials: pd.DataFrame) -> pd.DataFrame:
     t["found_rate"] = g["transform_found"].mean()
     t["correct_per_trial"] = g["correct_pairs"].mean()
     t["wrong_per_trial"] = g["wrong_pairs"].mean()
-    if "oracle_correct_pairs" in trials:
-        oracle = g[["oracle_correct_pairs", "oracle_wrong_pairs"]].sum()
-        t["oracle_correct_per_trial"] = g["oracle_correct_pairs"].mean()
-        t["oracle_wrong_per_trial"] = g["oracle_wrong_pairs"].mean()
-        t["correct_vs_oracle"] = ratio(lm.correct_pairs, oracle.oracle_correct_pairs)
-        t["wrong_vs_oracle"] = ratio(lm.wrong_pairs, oracle.oracle_wrong_pairs)
+    # Two oracles: "oracle" knows the true transform and the true prior π, "transform_oracle" the
+    # transform only (it estimates π as consensus does).
+    for name in ("oracle", "transform_oracle"):
+        if f"{name}_correct_pairs" not in trials:
+            continue
+        correct, wrong = f"{name}_correct_pairs", f"{name}_wrong_pairs"
+        oracle = g[[correct, wrong]].sum()
+        t[f"{name}_correct_per_trial"] = g[correct].mean()
+        t[f"{name}_wrong_per_trial"] = g[wrong].mean()
+        t[f"correct_vs_{name}"] = ratio(lm.correct_pairs, oracle[correct])
+        t[f"wrong_vs_{name}"] = ratio(lm.wrong_pairs, oracle[wrong])
         # The same on the trials whose transform was found: below about 15 dB even the oracle pairs
         # few landmarks, so association is judged apart from whether the transform was found.
-        found = trials[["correct_pairs", "wrong_pairs", "oracle_correct_pairs", "oracle_wrong_pairs"]].where(
+        found = trials[["correct_pairs", "wrong_pairs", correct, wrong]].where(
             trials["transform_found"].astype(bool), 0).groupby([trials[k] for k in keys]).sum()
-        t["correct_vs_oracle_found"] = ratio(found.correct_pairs, found.oracle_correct_pairs)
-        t["wrong_vs_oracle_found"] = ratio(found.wrong_pairs, found.oracle_wrong_pairs)
+        t[f"correct_vs_{name}_found"] = ratio(found.correct_pairs, found[correct])
+        t[f"wrong_vs_{name}_found"] = ratio(found.wrong_pairs, found[wrong])
     return t.reset_index()
 
 

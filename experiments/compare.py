@@ -25,8 +25,10 @@ maps. Then writes:
 * ``summary.md``: the same at 10-40 dB in 10 dB steps;
 * ``found.md`` / ``.csv``: consensus and the search alone, transform found
   with its 95 % Wilson interval, false merges, and correct and wrong
-  landmark pairs against the oracle association's on the pairs whose
-  transform was found, every SNR;
+  landmark pairs on the pairs whose transform was found against two
+  oracles: the oracle association (true transform and true prior π) and
+  the transform oracle (true transform only; π estimated as consensus
+  does), every SNR;
 * ``crossing.md`` / ``.csv`` (when ``results/detector/limit.csv`` exists,
   ``python -m experiments.detector``): the SNR at which each method and
   the exhaustive ML detector find 90 % of the transforms;
@@ -71,7 +73,8 @@ def comparison_table(table: pd.DataFrame) -> pd.DataFrame:
     cols = KEYS + ["n_trials", "recall_common", "recall_glrt", "fp_per_trial", "correct_per_trial",
                    "wrong_per_trial", "oracle_correct_per_trial", "oracle_wrong_per_trial", "landmark_precision",
                    "landmark_recall", "success_rate", "found_rate", "correct_vs_oracle_found",
-                   "wrong_vs_oracle_found", "false_merges", "n_trials_unrelated",
+                   "wrong_vs_oracle_found", "correct_vs_transform_oracle_found", "wrong_vs_transform_oracle_found",
+                   "false_merges", "n_trials_unrelated",
                    "median_ms_per_merge"]
     return out[[c for c in cols if c in out]].sort_values(["n_landmarks", "overlap", "layout", "method", "tau",
                                                            "snr_db"])
@@ -174,7 +177,7 @@ LOW_SNR_METHODS = ("consensus", "search")
 
 def found_table(comp: pd.DataFrame) -> pd.DataFrame:
     """``found.md``: transform found with its 95 % Wilson interval, false merges and the association on found
-    pairs against the oracle's, per method of
+    pairs against the two oracles' (``metrics.oracle_pairs_batch``), per method of
     ``LOW_SNR_METHODS``, layout and SNR (the low-SNR targets)."""
     s = comp[(comp.tau != "oracle") & comp.method.isin(LOW_SNR_METHODS)].copy()
     s["found_low"], s["found_high"] = wilson(np.round(s.found_rate * s.n_trials), s.n_trials)
@@ -184,6 +187,8 @@ def found_table(comp: pd.DataFrame) -> pd.DataFrame:
              "false_merges": "false merges", "n_trials_unrelated": "unrelated pairs",
              "false_high": "false-merge rate, 95 % high",
              "correct_vs_oracle_found": "correct vs oracle (found)", "wrong_vs_oracle_found": "wrong vs oracle (found)",
+             "correct_vs_transform_oracle_found": "correct vs transform oracle (found)",
+             "wrong_vs_transform_oracle_found": "wrong vs transform oracle (found)",
              "median_ms_per_merge": "ms per merge"}
     s["order"] = s.method.map({m: k for k, m in enumerate(METHOD_ORDER)})
     s = s.sort_values(["order", "layout", "snr_db"], key=lambda c: c != "strip" if c.name == "layout" else c)

@@ -303,6 +303,15 @@ def associate(P, Q, alignment, sigma, cov_p=None, cov_q=None):
     its convex hull's area; π starts at ``SHARED_PRIOR`` and is re-estimated
     from the association (``PRIOR_ROUNDS``).
 
+    Parameters
+    ----------
+    P, Q : (n_p, 2), (n_q, 2) ndarray
+    alignment : Alignment
+        The fitted transform: anything with ``theta``, ``t`` and ``cov``, the
+        covariance of (θ, t) (``metrics.KnownTransform`` for an exact one).
+    sigma : float
+    cov_p, cov_q : (n, 2, 2) ndarray, optional
+
     Returns
     -------
     pairs : (K, 2) int ndarray

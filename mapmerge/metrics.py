@@ -12,6 +12,8 @@ agree vertex by vertex. Over the LP's tentative pairs at threshold τ:
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from .alignment import covariance_in_p_frame, rotate, wrap_angle
@@ -349,21 +351,64 @@ def oracle_association(P, Q, theta, t, cov_p, cov_q, density_q: float, p_shared:
     return posterior_association(np.asarray(P, float), x, cov_p, covariance_in_p_frame(theta, cov_q), log_prior)[0]
 
 
-def oracle_pairs_batch(scenarios) -> dict:
-    """Correct and wrong pairs of the ``oracle_association`` of each of B simulated map pairs.
+@dataclasses.dataclass(frozen=True)
+class KnownTransform:
+    """A transform known exactly: ``q ≈ R(θ) p + t`` with a zero (θ, t) covariance."""
 
-    Uses the scenarios' true transforms, covariances and association prior
-    (``density``, ``p_shared`` within ``consensus.SHARED_RANGE``): the best
-    any matcher could do. Labelled an
-    oracle: it uses ground truth.
+    theta: float
+    t: np.ndarray
+    cov: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((3, 3)))
+
+
+def transform_oracle_association(P, Q, theta, t, sigma: float, cov_p=None, cov_q=None):
+    """``consensus``'s own landmark association, given the TRUE transform and nothing else.
+
+    ``oracle_association`` also knows the landmark density and the true
+    prior π that a landmark is shared; this oracle estimates π from the maps
+    exactly as ``consensus.associate`` does, so the gap between a matcher and
+    it is what the matcher's transform error costs, and the gap between the
+    two oracles is what not knowing π costs. Labelled an oracle: it uses
+    ground truth.
+
+    Parameters
+    ----------
+    P, Q : (n_p, 2), (n_q, 2) ndarray
+    theta, t : float, (2,) ndarray
+        The true transform, ``q ≈ R(θ) p + t``.
+    sigma : float
+    cov_p, cov_q : (n, 2, 2) ndarray, optional
+        Per-landmark covariances (σ² I when not given).
+
+    Returns
+    -------
+    (K, 2) int ndarray
+        Pairs (p index, q index), sorted by p index.
+    """
+    from .consensus import associate
+
+    known = KnownTransform(float(theta), np.asarray(t, dtype=float))
+    return associate(np.asarray(P, float), np.asarray(Q, float), known, float(sigma), cov_p, cov_q)[0]
+
+
+def oracle_pairs_batch(scenarios) -> dict:
+    """Correct and wrong pairs of the two oracle associations of each of B simulated map pairs.
+
+    ``oracle_association`` uses the scenarios' true transforms, covariances
+    and association prior (``density``, ``p_shared`` within
+    ``consensus.SHARED_RANGE``): the best any matcher could do.
+    ``transform_oracle_association`` knows only the true transform.
+    Labelled oracles: they use ground truth.
 
     Returns
     -------
     dict
-        ``oracle_correct_pairs``, ``oracle_wrong_pairs``: (B,) int arrays.
+        ``oracle_correct_pairs``, ``oracle_wrong_pairs``,
+        ``transform_oracle_correct_pairs``, ``transform_oracle_wrong_pairs``:
+        (B,) int arrays.
     """
     B = len(scenarios)
-    correct, wrong = np.zeros(B, np.int64), np.zeros(B, np.int64)
+    counts = {key: np.zeros(B, np.int64) for key in ("oracle_correct_pairs", "oracle_wrong_pairs",
+                                                     "transform_oracle_correct_pairs", "transform_oracle_wrong_pairs")}
     from .consensus import SHARED_RANGE
 
     # The prior is one number for every landmark, also those outside the
@@ -371,8 +416,11 @@ def oracle_pairs_batch(scenarios) -> dict:
     # its own estimate, so that "unshared" always has a price.
     p_shared = float(np.clip(scenarios.p_shared, *SHARED_RANGE))
     for b in range(B):  # one global assignment per map pair
-        pairs = oracle_association(scenarios.p[b], scenarios.q[b], scenarios.theta[b], scenarios.t[b],
-                                   scenarios.cov_p[b], scenarios.cov_q[b], scenarios.density, p_shared)
-        ok = scenarios.ids_p[b, pairs[:, 0]] == scenarios.ids_q[b, pairs[:, 1]]
-        correct[b], wrong[b] = ok.sum(), (~ok).sum()
-    return {"oracle_correct_pairs": correct, "oracle_wrong_pairs": wrong}
+        P, Q, theta, t = scenarios.p[b], scenarios.q[b], scenarios.theta[b], scenarios.t[b]
+        cov_p, cov_q = scenarios.cov_p[b], scenarios.cov_q[b]
+        for name, pairs in (
+                ("oracle", oracle_association(P, Q, theta, t, cov_p, cov_q, scenarios.density, p_shared)),
+                ("transform_oracle", transform_oracle_association(P, Q, theta, t, scenarios.sigma[b], cov_p, cov_q))):
+            ok = scenarios.ids_p[b, pairs[:, 0]] == scenarios.ids_q[b, pairs[:, 1]]
+            counts[f"{name}_correct_pairs"][b], counts[f"{name}_wrong_pairs"][b] = ok.sum(), (~ok).sum()
+    return counts

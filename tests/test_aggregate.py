@@ -121,6 +121,8 @@ def test_compare_sweep_tables_and_figure_on_both_layouts(tmp_path):
     assert np.allclose(both["correct vs oracle (found)"], both.correct_per_trial / both.oracle_correct_per_trial)
     assert np.allclose(both["wrong vs oracle (found)"], both.wrong_per_trial / both.oracle_wrong_per_trial,
                        equal_nan=True)
+    # The transform oracle (true transform, π estimated) pairs as consensus does once the transform is found.
+    assert both["correct vs transform oracle (found)"].between(0.97, 1.03).all()
     crossing = pd.read_csv(out / "crossing.csv").set_index(["layout", "method"])
     assert crossing.loc[("strip", "consensus"), "behind the detector (dB)"] == 0
     # Rebuilt where git has no timing.csv (a clone): the times last written are kept.
