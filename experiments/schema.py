@@ -57,8 +57,9 @@ class MatcherConfig:
     taus: list[str] = field(default_factory=lambda: ["oracle", "chi2:0.01", "chi2:0.001"])
     # Pass the maps' per-landmark covariances (consensus's association and acceptance, fusion of every method).
     use_cov: bool = False
-    # Also run the oracle association (true transform, true noise model) on
-    # every synthetic trial: oracle_correct_pairs / oracle_wrong_pairs columns.
+    # Also run the two oracle associations on every synthetic trial: the oracle
+    # (true transform, noise model and prior; oracle_correct_pairs / oracle_wrong_pairs)
+    # and the transform oracle (true transform only; transform_oracle_* columns).
     oracle: bool = False
 
 
