@@ -28,8 +28,9 @@ Fig. 1 scenario (100 landmarks per map, 75 % common):
    defaults and the same σ, but not the layout's prior): whether it merged,
    whether it found the transform and its correct and wrong landmark pairs,
    the latter against those of the oracle association (true transform and
-   prior, ``mapmerge.metrics.oracle_pairs_batch``) on the pairs where
-   consensus found the transform. The two are compared pair by pair.
+   prior) and of the transform oracle (true transform only; both from
+   ``mapmerge.metrics.oracle_pairs_batch``) on the pairs where consensus
+   found the transform. The two are compared pair by pair.
 
 The detector knows the true σ and the layout's prior, so it is a reference
 (an oracle), not a method; its threshold, extrapolated from 100 null pairs,
@@ -89,18 +90,20 @@ def consensus_outcome(layout: str, snr: float, seed: int, unrelated: bool) -> tu
         err["wrong_pairs"]
 
 
-def oracle_outcome(layout: str, snr: float, seed: int, unrelated: bool) -> tuple[int, int]:
-    """(correct, wrong) pairs of the oracle association; (0, 0) for unrelated pairs, which have no truth."""
+def oracle_outcome(layout: str, snr: float, seed: int, unrelated: bool) -> tuple[int, int, int, int]:
+    """(correct, wrong) pairs of the oracle association, then of the transform oracle; zeros for
+    unrelated pairs, which have no truth."""
     if unrelated:
-        return 0, 0
+        return 0, 0, 0, 0
     oracle = mm.metrics.oracle_pairs_batch(_pairs(layout, snr, seed, unrelated))
-    return int(oracle["oracle_correct_pairs"][0]), int(oracle["oracle_wrong_pairs"][0])
+    return tuple(int(oracle[f"{name}_{kind}_pairs"][0]) for name in ("oracle", "transform_oracle")
+                 for kind in ("correct", "wrong"))
 
 
 #: What is measured on each pair: the function and the columns it fills.
 MEASURES = ((statistic, ("log_lr", "found", "seconds")),
             (consensus_outcome, ("consensus_merged", "consensus_found", "consensus_correct", "consensus_wrong")),
-            (oracle_outcome, ("oracle_correct", "oracle_wrong")))
+            (oracle_outcome, ("oracle_correct", "oracle_wrong", "transform_oracle_correct", "transform_oracle_wrong")))
 
 
 def null_threshold(null: np.ndarray) -> float:
@@ -171,6 +174,10 @@ def limit_table(runs: pd.DataFrame) -> pd.DataFrame:
                      # Association where consensus found the transform, against the oracle's on those pairs.
                      "consensus_correct_vs_oracle": float(ratio(found.consensus_correct.sum(), found.oracle_correct.sum())),
                      "consensus_wrong_vs_oracle": float(ratio(found.consensus_wrong.sum(), found.oracle_wrong.sum())),
+                     "consensus_correct_vs_transform_oracle": float(ratio(found.consensus_correct.sum(),
+                                                                           found.transform_oracle_correct.sum())),
+                     "consensus_wrong_vs_transform_oracle": float(ratio(found.consensus_wrong.sum(),
+                                                                         found.transform_oracle_wrong.sum())),
                      "median_related_log_lr": float(np.median(related.log_lr)),
                      "median_s": float(np.median(g.seconds))})
     return pd.DataFrame(rows)

@@ -81,7 +81,7 @@ def test_limit_experiment_resumes_without_recomputing_finished_pairs(tmp_path, m
 
     def fake_oracle(layout, snr, seed, unrelated):
         calls.append("oracle")
-        return seed % 7, 1
+        return seed % 7, 1, seed % 7 + 1, 2
 
     monkeypatch.setattr(detector, "MEASURES", tuple(zip((fake_statistic, fake_consensus, fake_oracle),
                                                         (columns for _, columns in detector.MEASURES))))
@@ -108,6 +108,7 @@ def test_limit_experiment_resumes_without_recomputing_finished_pairs(tmp_path, m
     related = fresh[~fresh.unrelated & (fresh.seed % 3 == 0)]
     assert table.consensus_correct_vs_oracle.iloc[0] == pytest.approx(
         (related.seed % 5).iloc[:2].sum() / (related.seed % 7).iloc[:2].sum())
+    assert table.consensus_wrong_vs_transform_oracle.iloc[0] == pytest.approx((related.seed % 2).iloc[:2].sum() / 4)
     # fake_statistic finds every related transform: accurate whatever the threshold, found only above it.
     assert list(table.ml_accurate_rate) == [1.0] * 4
     assert (table.found_rate == table.detected_rate).all() and (table.found_rate <= table.ml_accurate_rate).all()
