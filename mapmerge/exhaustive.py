@@ -211,7 +211,9 @@ def em_refine(P, Q, theta, t, s, c, hull):
         bump = c * np.exp(-d2 / (2 * s**2))
         w = bump / (1 + np.bincount(j, bump, len(inside))[j])
         a, b = P[i], Q[inside[j]]
-        wa, wb = np.average(a, axis=0, weights=w), np.average(b, axis=0, weights=w)
+        # np.average's arithmetic (the same bits) without its argument checks, which cost more than the sums.
+        total = w.sum()
+        wa, wb = (a * w[:, None]).sum(axis=0) / total, (b * w[:, None]).sum(axis=0) / total
         a, b = a - wa, b - wb
         new = float(np.arctan2(np.sum(w * (a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])),
                                np.sum(w * (a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]))))
