@@ -171,13 +171,10 @@ def limit_table(runs: pd.DataFrame) -> pd.DataFrame:
                      "ml_accurate_rate": related.found.mean(),
                      "consensus_found_rate": related.consensus_found.mean(),
                      "consensus_false_merges": int(g[g.unrelated].consensus_merged.sum()),
-                     # Association where consensus found the transform, against the oracle's on those pairs.
-                     "consensus_correct_vs_oracle": float(ratio(found.consensus_correct.sum(), found.oracle_correct.sum())),
-                     "consensus_wrong_vs_oracle": float(ratio(found.consensus_wrong.sum(), found.oracle_wrong.sum())),
-                     "consensus_correct_vs_transform_oracle": float(ratio(found.consensus_correct.sum(),
-                                                                           found.transform_oracle_correct.sum())),
-                     "consensus_wrong_vs_transform_oracle": float(ratio(found.consensus_wrong.sum(),
-                                                                         found.transform_oracle_wrong.sum())),
+                     # Association where consensus found the transform, against both oracles' on those pairs.
+                     **{f"consensus_{kind}_vs_{name}": float(ratio(found[f"consensus_{kind}"].sum(),
+                                                                  found[f"{name}_{kind}"].sum()))
+                        for name in ("oracle", "transform_oracle") for kind in ("correct", "wrong")},
                      "median_related_log_lr": float(np.median(related.log_lr)),
                      "median_s": float(np.median(g.seconds))})
     return pd.DataFrame(rows)
