@@ -114,10 +114,12 @@ def test_transform_oracle_knows_the_transform_but_not_the_prior():
     np.testing.assert_array_equal(high["transform_oracle_correct_pairs"], [75, 75, 75])
     np.testing.assert_array_equal(high["transform_oracle_wrong_pairs"], [0, 0, 0])
     # At 10 dB in the strip layout every q landmark among p's is shared (π = 1): the oracle that
-    # knows it pairs more common landmarks than one that estimates π from the maps.
+    # knows it pairs more common landmarks than one that estimates π from the maps, but not many
+    # more, because the estimate corrects for the association's own misses (without that
+    # correction these pairs gave 0.955x).
     low = metrics.oracle_pairs_batch(mm.simulate.make_pairs(100, 0.75, 10, range(50, 62)))
     assert low["transform_oracle_correct_pairs"].sum() < low["oracle_correct_pairs"].sum()
-    assert low["transform_oracle_correct_pairs"].sum() > 0.9 * low["oracle_correct_pairs"].sum()
+    assert low["transform_oracle_correct_pairs"].sum() > 0.98 * low["oracle_correct_pairs"].sum()
     sc = mm.simulate.make_pair(100, 0.75, 10, rng=50)
     pairs = metrics.transform_oracle_association(sc.p, sc.q, sc.theta, sc.t, sc.sigma)
     ok = sc.ids_p[pairs[:, 0]] == sc.ids_q[pairs[:, 1]]
