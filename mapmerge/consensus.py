@@ -230,7 +230,7 @@ def _own_covariances(cov, n: int, sigma: float) -> np.ndarray:
     return np.broadcast_to(sigma**2 * np.eye(2), (n, 2, 2)) if cov is None else cov
 
 
-def posterior_association(P, x, cov_p, cov_x, log_prior: float):
+def posterior_association(P, x, cov_p, cov_x, log_prior: float, with_margin: bool = True):
     """The maximum-posterior one-to-one association of P and mapped q landmarks x.
 
     Pair (i, j) scores its log-odds against "both unshared":
@@ -249,17 +249,20 @@ def posterior_association(P, x, cov_p, cov_x, log_prior: float):
     cov_p, cov_x : (n_p, 2, 2), (n_q, 2, 2) ndarray
         Their covariances in p's frame.
     log_prior : float
+    with_margin : bool, default True
+        Compute ``margin`` (one more assignment per contested pair: most of
+        the cost where many pairs compete).
 
     Returns
     -------
     pairs : (K, 2) int ndarray
         (p index, q index), sorted by p index.
-    margin : (K,) ndarray
+    margin : (K,) ndarray or None
         Score lost if the pair were forbidden and one of its landmarks paired
         otherwise (inf when no competing pairing exists); small margins mark
-        pairs the data cannot tell from a swap.
+        pairs the data cannot tell from a swap. None unless ``with_margin``.
     """
-    empty = np.empty((0, 2), dtype=np.intp), np.empty(0)
+    empty = np.empty((0, 2), dtype=np.intp), (np.empty(0) if with_margin else None)
     # A pair scores > 0 only if d² < 2 (log_prior - log(2π √det C)): bounds the search radius.
     det_min = np.linalg.det(cov_p).min() + np.linalg.det(cov_x).min()
     largest = np.linalg.eigvalsh(cov_p)[:, 1].max() + np.linalg.eigvalsh(cov_x)[:, 1].max()
@@ -284,7 +287,7 @@ def posterior_association(P, x, cov_p, cov_x, log_prior: float):
         keep = gain[r, c] > 0
         best = gain[r, c].sum()
         margin = np.full(int(keep.sum()), np.inf)
-        for m, (a, b) in enumerate(zip(r[keep], c[keep])):
+        for m, (a, b) in enumerate(zip(r[keep], c[keep]) if with_margin else ()):
             alt = gain.copy()
             alt[a, b] = 0.0
             ra, ca = linear_sum_assignment(alt, maximize=True)
@@ -296,7 +299,7 @@ def posterior_association(P, x, cov_p, cov_x, log_prior: float):
         margins.append(margin)
     pairs, margins = np.concatenate(pairs).astype(np.intp), np.concatenate(margins)
     order = np.argsort(pairs[:, 0], kind="stable")
-    return pairs[order], margins[order]
+    return pairs[order], (margins[order] if with_margin else None)
 
 
 def associate(P, Q, alignment, sigma, cov_p=None, cov_q=None):
@@ -333,9 +336,12 @@ def associate(P, Q, alignment, sigma, cov_p=None, cov_q=None):
     # The pair covariance of each q landmark among p's, with a typical p landmark.
     det_pair = np.linalg.det(cov_x[inside] + np.median(cov_p, axis=0))
     shared = SHARED_PRIOR
-    for _ in range(PRIOR_ROUNDS):
+    for round_ in range(1, PRIOR_ROUNDS + 1):
         log_prior = np.log(shared / (1 - shared)) - log_density
-        pairs, margin = posterior_association(P, x, cov_p, cov_x, log_prior)
+        # Only the association returned needs its margins.
+        pairs, margin = posterior_association(P, x, cov_p, cov_x, log_prior, with_margin=round_ == PRIOR_ROUNDS)
+        if round_ == PRIOR_ROUNDS:
+            break
         # π re-estimated as the paired share of q's landmarks among p's, over the share of
         # shared ones the association can pair at this π: a true pair scores above "unshared"
         # within the Mahalanobis radius d², which it falls inside with probability 1 - exp(-d²/2).

@@ -348,7 +348,8 @@ def oracle_association(P, Q, theta, t, cov_p, cov_q, density_q: float, p_shared:
         raise ValueError("density_q must be > 0 and p_shared in (0, 1)")
     x = rotate(-theta, np.asarray(Q, float) - t)
     log_prior = np.log(p_shared / (1 - p_shared)) - np.log(density_q)
-    return posterior_association(np.asarray(P, float), x, cov_p, covariance_in_p_frame(theta, cov_q), log_prior)[0]
+    return posterior_association(np.asarray(P, float), x, cov_p, covariance_in_p_frame(theta, cov_q), log_prior,
+                                 with_margin=False)[0]
 
 
 @dataclasses.dataclass(frozen=True)

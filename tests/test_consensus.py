@@ -5,6 +5,7 @@ import pytest
 
 import mapmerge as mm
 from mapmerge import metrics
+from mapmerge.consensus import posterior_association
 
 
 def _counts(sc, res):
@@ -70,7 +71,8 @@ def test_consensus_targets_on_60_trials_per_snr():
 def test_association_at_10_db_pairs_about_as_many_landmarks_as_the_oracle():
     # Seeds 50-73 are not among the tuning or reported seeds. Judged, as in results/compare, on
     # the pairs whose transform was found, against the association that knows the true transform.
-    # Started from a neutral prior the association settled at 0.73x the oracle's correct pairs.
+    # Started from a neutral prior the uncorrected estimate of π settled at 0.73x the oracle's
+    # correct pairs; started at 0.8, 0.958x; with the recall correction 0.981x (wrong 1.04x).
     batch = mm.simulate.make_pairs(100, 0.75, 10.0, list(range(50, 74)))
     oracle = metrics.oracle_pairs_batch(batch)
     found = correct = wrong = oracle_correct = oracle_wrong = 0
@@ -83,4 +85,15 @@ def test_association_at_10_db_pairs_about_as_many_landmarks_as_the_oracle():
             oracle_correct += oracle["oracle_correct_pairs"][k]
             oracle_wrong += oracle["oracle_wrong_pairs"][k]
     assert found >= 10
-    assert correct >= 0.9 * oracle_correct and wrong <= 1.2 * oracle_wrong
+    assert correct >= 0.97 * oracle_correct and wrong <= 1.1 * oracle_wrong
+
+
+def test_posterior_association_margins_are_optional():
+    # Skipping the margins (one assignment per contested pair) must not change the pairs.
+    sc = mm.simulate.make_pair(100, 0.75, 5.0, rng=3)
+    x = mm.alignment.rotate(-sc.theta, sc.q - sc.t)
+    cov = np.broadcast_to(sc.sigma**2 * np.eye(2), (100, 2, 2))
+    pairs, margin = posterior_association(sc.p, x, cov, cov, np.log(4.0) - np.log(sc.density))
+    fast, none = posterior_association(sc.p, x, cov, cov, np.log(4.0) - np.log(sc.density), with_margin=False)
+    np.testing.assert_array_equal(fast, pairs)
+    assert none is None and len(margin) == len(pairs) and np.any(np.isfinite(margin))
