@@ -269,8 +269,8 @@ def posterior_association(P, x, cov_p, cov_x, log_prior: float, with_margin: boo
     d2_max = 2 * (log_prior - np.log(2 * np.pi * np.sqrt(det_min)))
     if d2_max <= 0:
         return empty
-    cand = cKDTree(P).sparse_distance_matrix(cKDTree(x), np.sqrt(d2_max * largest), output_type="coo_matrix")
-    i, j = cand.row, cand.col
+    cand = cKDTree(P).sparse_distance_matrix(cKDTree(x), np.sqrt(d2_max * largest), output_type="ndarray")
+    i, j = cand["i"], cand["j"]
     C = cov_p[i] + cov_x[j]
     e = P[i] - x[j]
     d2 = np.einsum("ki,kij,kj->k", e, np.linalg.inv(C), e)
@@ -279,10 +279,12 @@ def posterior_association(P, x, cov_p, cov_x, log_prior: float, with_margin: boo
     i, j, score = i[keep], j[keep], score[keep]
     if i.size == 0:
         return empty
-    comp = candidate_components(i, j, len(P), len(x))
-    single = np.bincount(comp)[comp] == 1  # the common case: one candidate, no contest
+    # The common case: a candidate alone in its row and column, a component of its own (no contest).
+    single = (np.bincount(i)[i] == 1) & (np.bincount(j)[j] == 1)
     pairs, margins = [np.stack([i[single], j[single]], axis=1)], [np.full(int(single.sum()), np.inf)]
-    for rows, cols, gain in component_blocks(i[~single], j[~single], score[~single], comp[~single], 0.0):
+    i, j, score = i[~single], j[~single], score[~single]
+    comp = candidate_components(i, j, len(P), len(x)) if i.size else i
+    for rows, cols, gain in component_blocks(i, j, score, comp, 0.0):
         r, c = linear_sum_assignment(gain, maximize=True)
         keep = gain[r, c] > 0
         best = gain[r, c].sum()
