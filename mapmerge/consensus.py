@@ -43,11 +43,13 @@ from scipy.spatial import ConvexHull, cKDTree
 from scipy.special import chdtri, gammaln
 
 from .alignment import (
-    align_pairs, mapped_covariance, paired_transforms, prediction_var, reject_outliers, rotation,
-    wrap_angle,
+    Alignment, align_pairs, fit_transforms, mapped_covariance, paired_transforms, prediction_var,
+    reject_outliers, rotation, wrap_angle,
 )
 from .exhaustive import bump_height, em_refine, inside_hull, pair_noise
-from .matching import TriangleMatch, candidate_components, component_blocks, correspondences
+from .matching import (
+    TriangleMatch, candidate_components, component_blocks, correspondences, resolve_correspondences,
+)
 from .result import MergeBatch, build_from_parts
 
 #: Tail probability of every χ² gate (a true pair / landmark is rejected
@@ -146,24 +148,51 @@ def _consensus(vp, vq, P, Q, scores, sigma):
     inliers = _gate_d2(cp[pool], cq[pool], theta, t, var) <= gate
     count = inliers.sum(axis=1)
     centres = cp[pool].mean(axis=1)
+    # Sorted by count: the hypotheses from the first one short of MIN_CONSENSUS on have fewer.
+    order = np.lexsort((-scores[hyp], -count))[:REFINE]
+    order = order[count[order] >= MIN_CONSENSUS]
+    if large:
+        groups = (_grow(vp, vq, P, Q, scores, sigma, pool, centres, hyp[h], gate) for h in order)
+    else:
+        groups = _refit_groups(vp, vq, P, Q, scores, sigma, pool, inliers[order], gate)
     best, best_key = np.empty(0, dtype=np.intp), (0, 0.0)
-    for h in np.lexsort((-scores[hyp], -count))[:REFINE]:
-        if count[h] < MIN_CONSENSUS:
-            break
-        if large:
-            members = _grow(vp, vq, P, Q, scores, sigma, pool, centres, hyp[h], gate)
-        else:
-            members = pool[inliers[h]]
-            pairs, _ = correspondences(vp[members], vq[members], scores[members])
-            if pairs.shape[0] < 3:
-                continue
-            al = align_pairs(P[pairs[:, 0]], Q[pairs[:, 1]], sigma)
-            var_fit = 2 * sigma**2 + prediction_var(cp[pool], al)
-            members = pool[_gate_d2(cp[pool], cq[pool], al.theta, al.t, var_fit) <= gate]
+    for members in groups:
         key = (members.size, float(scores[members].sum()))
         if key > best_key:
             best, best_key = members, key
     return best
+
+
+def _refit_groups(vp, vq, P, Q, scores, sigma, pool, inliers, gate):
+    """Each hypothesis's group after one refit on its inliers' landmarks, all hypotheses at once.
+
+    ``inliers`` (H, pool) marks each hypothesis's pool members. Their
+    landmark correspondences are resolved and fitted per hypothesis
+    (landmark indices offset per hypothesis, so none competes with another's),
+    and the pool is gated under each fit; hypotheses with fewer than 3
+    correspondences are left out. Returns the groups (pool members), in
+    the order of ``inliers``' rows.
+    """
+    if len(inliers) == 0:
+        return []
+    n_p, n_q = len(P), len(Q)
+    h, at = np.nonzero(inliers)
+    members = pool[at]
+    uniq, keep = resolve_correspondences(vp[members] + n_p * h[:, None], vq[members] + n_q * h[:, None],
+                                         scores[members])
+    (kp, kq), trial = uniq[keep].T, uniq[keep, 0] // n_p
+    theta, t, cost = fit_transforms(trial, P[kp % n_p], Q[kq % n_q], len(inliers))
+    fitted = np.flatnonzero(np.bincount(trial, minlength=len(inliers)) >= 3)
+    if fitted.size == 0:
+        return []
+    cp, cq = P[vp[pool]], Q[vq[pool]]
+    var = []
+    for k in fitted:
+        sel = trial == k
+        al = Alignment.from_fit(theta[k], t[k], cost[k], P[kp[sel] % n_p], Q[kq[sel] % n_q], sigma)
+        var.append(2 * sigma**2 + prediction_var(cp, al))
+    inside = _gate_d2(cp, cq, theta[fitted], t[fitted], np.stack(var)) <= gate
+    return [pool[row] for row in inside]
 
 
 def _grow(vp, vq, P, Q, scores, sigma, pool, centres, seed, gate):
