@@ -49,7 +49,13 @@ def rotate(theta, x: np.ndarray) -> np.ndarray:
     """
     theta = np.asarray(theta, dtype=float)
     c, s = np.cos(theta)[..., None], np.sin(theta)[..., None]
-    return np.stack([c * x[..., 0] - s * x[..., 1], s * x[..., 0] + c * x[..., 1]], axis=-1)
+    x0, x1 = x[..., 0], x[..., 1]
+    first = c * x0
+    # Written into one array rather than stacked: called in every EM round, where np.stack's overhead shows.
+    out = np.empty(first.shape + (2,), dtype=first.dtype)
+    np.subtract(first, s * x1, out=out[..., 0])
+    np.add(s * x0, c * x1, out=out[..., 1])
+    return out
 
 
 def covariance_in_p_frame(theta, cov: np.ndarray) -> np.ndarray:
@@ -83,9 +89,11 @@ def fit_transforms(trial: np.ndarray, P: np.ndarray, Q: np.ndarray, n_trials: in
         J*, computed as a residual (no cancellation).
     """
     K = np.bincount(trial, minlength=n_trials)
+    # Both coordinates' sums in one bincount (bin 2k + d): each bin still adds its pairs in order.
+    bins = (2 * trial[:, None] + np.arange(2)).ravel()
     with np.errstate(invalid="ignore", divide="ignore"):
-        p_bar = np.stack([np.bincount(trial, P[:, d], n_trials) for d in (0, 1)], axis=1) / K[:, None]
-        q_bar = np.stack([np.bincount(trial, Q[:, d], n_trials) for d in (0, 1)], axis=1) / K[:, None]
+        p_bar = np.bincount(bins, P.ravel(), 2 * n_trials).reshape(n_trials, 2) / K[:, None]
+        q_bar = np.bincount(bins, Q.ravel(), 2 * n_trials).reshape(n_trials, 2) / K[:, None]
     px, py = (P - p_bar[trial]).T
     qx, qy = (Q - q_bar[trial]).T
     alpha = -np.bincount(trial, qx * px + qy * py, n_trials)
