@@ -183,12 +183,18 @@ def _log_nfa(P, Q, hypotheses, s: float, n_hypotheses: float, hull):
     """log NFA of each hypothesis after EM, the a contrario mixture test (module docstring, step 4),
     and the hypotheses moved to the EM's transforms (``hull``: p's convex hull)."""
     c = bump_height(len(P), hull.volume, s, MIXTURE_PRIOR)
-    log_lr, n_inside, fitted = [], [], []
+    log_lr, n_inside, fitted, done = [], [], [], {}
     for al in hypotheses:
-        theta, t = em_refine(P, Q, al.theta, al.t, s, c, hull)
+        # Hypotheses often refine to the very same transform, which EM would only repeat.
+        start = np.float64(al.theta).tobytes() + np.asarray(al.t, float).tobytes()
+        if start not in done:
+            theta, t = em_refine(P, Q, al.theta, al.t, s, c, hull)
+            done[start] = (theta, t, exact_log_lr(P, Q, theta, t, s, c, MIXTURE_PRIOR, hull),
+                           int(np.sum(inside_hull(hull, rotate(-theta, Q - t)))))
+        theta, t, lr, n_in = done[start]
         fitted.append(dataclasses.replace(al, theta=theta, t=t))
-        log_lr.append(exact_log_lr(P, Q, theta, t, s, c, MIXTURE_PRIOR, hull))
-        n_inside.append(int(np.sum(inside_hull(hull, rotate(-theta, Q - t)))))
+        log_lr.append(lr)
+        n_inside.append(n_in)
     return np.log(n_hypotheses) + null_log_tail(log_lr, n_inside, P, hull, s, c, MIXTURE_PRIOR), fitted
 
 
