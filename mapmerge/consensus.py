@@ -183,15 +183,15 @@ def _refit_groups(vp, vq, P, Q, scores, sigma, pool, inliers, gate):
     members = pool[at]
     uniq, keep = resolve_correspondences(vp[members] + n_p * h[:, None], vq[members] + n_q * h[:, None],
                                          scores[members])
-    (kp, kq), trial = uniq[keep].T, uniq[keep, 0] // n_p
-    theta, t, cost = fit_transforms(trial, P[kp % n_p], Q[kq % n_q], len(inliers))
-    fitted = np.flatnonzero(np.bincount(trial, minlength=len(inliers)) >= 3)
+    (kp, kq), owner = uniq[keep].T, uniq[keep, 0] // n_p  # owner: the hypothesis of each correspondence
+    theta, t, cost = fit_transforms(owner, P[kp % n_p], Q[kq % n_q], len(inliers))
+    fitted = np.flatnonzero(np.bincount(owner, minlength=len(inliers)) >= 3)
     if fitted.size == 0:
         return []
     cp, cq = P[vp[pool]], Q[vq[pool]]
     var = []
     for k in fitted:
-        sel = trial == k
+        sel = owner == k
         al = Alignment.from_fit(theta[k], t[k], cost[k], P[kp[sel] % n_p], Q[kq[sel] % n_q], sigma)
         var.append(2 * sigma**2 + prediction_var(cp, al))
     inside = _gate_d2(cp, cq, theta[fitted], t[fitted], np.stack(var)) <= gate
