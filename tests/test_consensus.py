@@ -97,3 +97,26 @@ def test_posterior_association_margins_are_optional():
     fast, none = posterior_association(sc.p, x, cov, cov, np.log(4.0) - np.log(sc.density), with_margin=False)
     np.testing.assert_array_equal(fast, pairs)
     assert none is None and len(margin) == len(pairs) and np.any(np.isfinite(margin))
+
+
+def test_hypotheses_refitted_together_give_the_groups_refitted_one_at_a_time(monkeypatch):
+    from mapmerge import consensus
+
+    refit, calls = consensus._refit_groups, []
+
+    def spy(*args):
+        groups = refit(*args)
+        calls.append((args, groups))
+        return groups
+
+    monkeypatch.setattr(consensus, "_refit_groups", spy)
+    for seed in range(3):
+        sc = mm.simulate.make_pair(100, 0.75, 12.5, rng=seed)
+        mm.merge_maps(sc.p, sc.q, sc.sigma)
+    assert max(len(args[-2]) for args, _ in calls) > 10  # many hypotheses refitted at once
+    for args, groups in calls:
+        *head, inliers, gate = args
+        # A hypothesis with fewer than 3 correspondences has no group, alone or together.
+        alone = [group for k in range(len(inliers)) for group in refit(*head, inliers[k:k + 1], gate)]
+        assert len(alone) == len(groups)
+        assert all(np.array_equal(a, b) for a, b in zip(alone, groups))
