@@ -114,6 +114,8 @@ def _once(parts: list[pd.DataFrame]) -> pd.DataFrame:
     τ rules (a sweep over ``matcher.taus``) hold the same trials' pairs:
     the first run that has a trial supplies its pairs.
     """
+    if len(parts) == 1:  # the usual case: nothing to drop, and no copy of millions of rows
+        return parts[0]
     seen, kept = set(), []
     for part in parts:
         key = part["seed"].to_numpy(np.int64) * (1 << 32) + part["trial"].to_numpy(np.int64)
