@@ -280,10 +280,12 @@ def resolve_correspondences(vertices_p, vertices_q, log_lr):
     # keeps; keeping it kills its rivals. Conflicts are rare, so few rounds.
     won = np.zeros(contested.size, dtype=bool)
     live = np.ones(contested.size, dtype=bool)
+    taken_p, taken_q = np.zeros(int(cp.max()) + 1, dtype=bool), np.zeros(int(cq.max()) + 1, dtype=bool)
     while live.any():
         first = live & (rank == _first_rank(cp, rank, live)) & (rank == _first_rank(cq, rank, live))
         won |= first
-        live &= ~np.isin(cp, cp[first]) & ~np.isin(cq, cq[first])
+        taken_p[cp[first]] = taken_q[cq[first]] = True
+        live &= ~taken_p[cp] & ~taken_q[cq]
     keep[contested] = won
     return uniq, keep
 
