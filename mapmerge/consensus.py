@@ -144,17 +144,18 @@ def _consensus(vp, vq, P, Q, scores, sigma):
     theta, t, _ = paired_transforms(cp[hyp], cq[hyp])
     centre = cp[hyp].mean(axis=1)
     spread = np.sum((cp[hyp] - centre[:, None]) ** 2, axis=(1, 2))  # Σ‖p̃‖²
-    lever2 = np.sum((cp[pool][None] - centre[:, None, None, :]) ** 2, axis=-1)  # (H, pool, 3)
+    pooled = cp[pool]
+    lever2 = np.sum((pooled[None] - centre[:, None, None, :]) ** 2, axis=-1)  # (H, pool, 3)
     # Per coordinate: both maps' noise, t at the centroid (2σ²/3) and the
     # rotation error 2σ²/Σ‖p̃‖² times the squared lever arm.
     var = 2 * sigma**2 * (1 + 1 / 3 + lever2 / spread[:, None, None])
-    inliers = _gate_d2(cp[pool], cq[pool], theta, t, var) <= gate
+    inliers = _gate_d2(pooled, cq[pool], theta, t, var) <= gate
     count = inliers.sum(axis=1)
-    centres = cp[pool].mean(axis=1)
     # Sorted by count: the hypotheses from the first one short of MIN_CONSENSUS on have fewer.
     order = np.lexsort((-scores[hyp], -count))[:REFINE]
     order = order[count[order] >= MIN_CONSENSUS]
     if large:
+        centres = pooled.mean(axis=1)
         groups = (_grow(vp, vq, P, Q, scores, sigma, pool, centres, hyp[h], gate) for h in order)
     else:
         groups = _refit_groups(vp, vq, P, Q, scores, sigma, pool, inliers[order], gate)
