@@ -53,7 +53,7 @@ import hashlib
 import numpy as np
 from scipy.spatial import ConvexHull, cKDTree
 
-from .alignment import align_pairs, rotate, rotation
+from .alignment import Alignment, align_pairs, fit_transforms, rotate, rotation
 from .consensus import associate, declared_triangles
 from .exhaustive import bump_height, em_refine, exact_log_lr, inside_hull, null_log_tail, pair_noise
 from .result import MergeBatch, build_from_parts
@@ -158,6 +158,42 @@ def _cell_index(x: np.ndarray, half: float, cell: float) -> np.ndarray:
     return np.floor(x, out=x)
 
 
+def _refine_all(P, Q, thetas, ts, r, cell, sigma):
+    """``_refine`` of every hypothesis at once, from all distances (maps of at most
+    ``MAX_SEARCH_LANDMARKS`` landmarks): the same pairs, in the same order, so the same fits.
+
+    Returns one alignment, or None, per hypothesis.
+    """
+    live, theta, t = np.arange(len(thetas)), [float(v) for v in thetas], list(ts)
+    for k in range(REFINE_ROUNDS):
+        x = np.stack([(Q - t[h]) @ rotation(theta[h]) for h in range(len(live))])
+        # The kd-tree's distance, to the bit: sqrt(dx² + dy²), and its strict upper bound.
+        d = np.sqrt((x[:, :, None, 0] - P[:, 0]) ** 2 + (x[:, :, None, 1] - P[:, 1]) ** 2)
+        i = d.argmin(axis=2)
+        dist = np.take_along_axis(d, i[..., None], axis=2)[..., 0]
+        h, j = np.nonzero(dist < max(2 * r, 2 * cell / 2**k))
+        i, dist = i[h, j], dist[h, j]
+        # One-to-one, per hypothesis: each p landmark keeps its nearest q landmark.
+        key = h * len(P) + i
+        order = np.lexsort((dist, key))
+        first = order[np.r_[True, key[order][1:] != key[order][:-1]]] if h.size else order
+        h, j, i = h[first], j[first], i[first]
+        fitted = np.bincount(h, minlength=len(live)) >= 3
+        keep = fitted[h]
+        # Renumber the hypotheses still refining: 0 .. (number fitted) - 1.
+        h, j, i = np.cumsum(fitted)[h[keep]] - 1, j[keep], i[keep]
+        live = live[fitted]
+        if not live.size:
+            return [None] * len(thetas)
+        th, tt, cost = fit_transforms(h, P[i], Q[j], len(live))
+        theta, t = [float(v) for v in th], list(tt)
+    out = [None] * len(thetas)
+    for k, hyp in enumerate(live):
+        sel = h == k
+        out[hyp] = Alignment.from_fit(theta[k], t[k], cost[k], P[i[sel]], Q[j[sel]], sigma)
+    return out
+
+
 def _refine(P, Q, theta, t, r, cell, sigma):
     """Nearest-neighbour pairs, refitted, the radius halved each round from the coarse cell's to 2r.
 
@@ -225,8 +261,7 @@ def search_pairs(P, Q, sigma: float, cov_p=None, cov_q=None):
     Ps, Qs = _thinned(P, MAX_SEARCH_LANDMARKS), _thinned(Q, MAX_SEARCH_LANDMARKS)
     thetas, ts, cell, n_hyp = _hypotheses(Ps, Qs, r)
     refined = []
-    for theta, t in zip(thetas, ts):
-        al = _refine(Ps, Qs, float(theta), t, r, cell, sigma)
+    for al in _refine_all(Ps, Qs, thetas, ts, r, cell, sigma):
         if al is not None and (len(Ps) < len(P) or len(Qs) < len(Q)):
             # Refined on the sparse subsets first: their spacing tolerates the coarse cell's error.
             al = _refine(P, Q, al.theta, al.t, r, r, sigma)

@@ -96,3 +96,23 @@ def test_search_declines_where_the_noise_is_comparable_to_the_landmark_spacing()
         assert (pair_noise(sc.sigma) > search.MAX_NOISE_SPACING * spacing) == declines
         pairs, _, nfa = search.search_pairs(sc.p, sc.q, sc.sigma)
         assert (nfa == np.inf) == declines and (len(pairs) == 0 or not declines)
+
+
+def test_hypotheses_refined_together_give_the_alignments_refined_one_at_a_time():
+    # Coarse hypotheses at 10 dB: some refine to the transform, some to chance alignments, some die.
+    checked = died = 0
+    for rng in range(6):
+        sc = mm.simulate.make_pair(60, 0.75, 10.0, rng=rng)
+        r = np.sqrt(2.0) * sc.sigma
+        thetas, ts, cell, _ = search._hypotheses(sc.p, sc.q, r)
+        thetas, ts = np.r_[thetas, thetas[0] + 2.0], np.r_[ts, ts[:1] + 1e6]  # one that pairs nothing
+        together = search._refine_all(sc.p, sc.q, thetas, ts, r, cell, sc.sigma)
+        for theta, t, al in zip(thetas, ts, together):
+            alone = search._refine(sc.p, sc.q, float(theta), t, r, cell, sc.sigma)
+            assert (al is None) == (alone is None)
+            died += al is None
+            if al is not None:
+                checked += 1
+                assert al.theta == alone.theta and np.array_equal(al.t, alone.t) and al.cost == alone.cost
+                assert np.array_equal(al.mu, alone.mu)
+    assert checked >= 20 and died >= 6
