@@ -31,10 +31,12 @@ maps. Then writes:
   does), every SNR;
 * ``crossing.md`` / ``.csv`` (when ``results/detector/limit.csv`` exists,
   ``python -m experiments.detector``): the SNR at which each method and
-  the exhaustive ML detector find 90 % of the transforms;
+  the exhaustive ML detector find 90 % of the transforms, and at which the
+  ML transform (no threshold) and the fit knowing every correspondence are
+  within 1° and σ in 90 % of the pairs;
 * ``success.png`` / ``.pdf``: transform found and wrong pairs vs SNR per
-  method and layout, with the oracle association's wrong pairs and the
-  detector's transform-found curve.
+  method and layout, with the oracle association's wrong pairs, the
+  detector's transform-found curve and the fit knowing every correspondence.
 """
 
 from __future__ import annotations
@@ -105,6 +107,9 @@ def success_figure(comp: pd.DataFrame, out: Path, limit: pd.DataFrame | None = N
                 if "ml_accurate_rate" in lim:
                     top.plot(lim.snr_db, lim.ml_accurate_rate, color="0.5", lw=1.0, ls=":",
                              label="ML transform accurate, no threshold")
+                if "correspondence_found_rate" in lim:
+                    top.plot(lim.snr_db, lim.correspondence_found_rate, color="0.3", lw=1.0, ls="--",
+                             label="limit: ML fit knowing every correspondence")
             if "oracle_wrong_per_trial" in part:
                 # Same trials for every method: the oracle's curve is one.
                 oracle = part.sort_values("n_trials", ascending=False).groupby("snr_db").oracle_wrong_per_trial.first()
@@ -211,15 +216,25 @@ def crossing_snr(snr, rate, level: float = CROSSING_LEVEL) -> float:
     return float(snr[k - 1] + (level - rate[k - 1]) * (snr[k] - snr[k - 1]) / (rate[k] - rate[k - 1]))
 
 
+#: Other references in the detector's table: column -> name in ``crossing.md``.
+LIMIT_CURVES = {"ml_accurate_rate": "reference: ML transform, no threshold",
+                "correspondence_found_rate": "limit: ML fit knowing every correspondence"}
+
+
 def crossing(comp: pd.DataFrame, limit: pd.DataFrame) -> pd.DataFrame:
     """``crossing.md``: per layout and method, the SNR at which ``CROSSING_LEVEL`` of the transforms are
     found, interpolated linearly between grid SNRs, and how far it lies behind the exhaustive detector's."""
     rows = []
     usable = comp[comp.tau != "oracle"]
     for layout, lim in limit.groupby("layout", sort=False):
-        detector = crossing_snr(lim.sort_values("snr_db").snr_db, lim.sort_values("snr_db").found_rate)
+        lim = lim.sort_values("snr_db")
+        detector = crossing_snr(lim.snr_db, lim.found_rate)
         rows.append({"layout": layout, "method": "limit: exhaustive detector", "snr_db": detector,
                      "behind_detector_db": 0.0})
+        for column, name in LIMIT_CURVES.items():
+            if column in lim:
+                at = crossing_snr(lim.snr_db, lim[column])
+                rows.append({"layout": layout, "method": name, "snr_db": at, "behind_detector_db": at - detector})
         for (method, tau), g in usable[usable.layout == layout].groupby(["method", "tau"], sort=False):
             g = g.sort_values("snr_db")
             at = crossing_snr(g.snr_db, g.found_rate)

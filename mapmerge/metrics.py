@@ -16,7 +16,7 @@ import dataclasses
 
 import numpy as np
 
-from .alignment import covariance_in_p_frame, rotate, wrap_angle
+from .alignment import Alignment, align_pairs, covariance_in_p_frame, rotate, wrap_angle
 from .combining import ONLY_Q
 
 
@@ -309,6 +309,37 @@ def transform_found(scenario, theta: float, t) -> bool:
 def _found(rot_err_deg, registration, sigma):
     """The transform-found rule (``FOUND_RMS_SIGMAS``), shared by the batch and the one-pair form."""
     return (rot_err_deg < SUCCESS_DEG) & (registration <= FOUND_RMS_SIGMAS * sigma)
+
+
+def correspondence_oracle_transform(scenario) -> Alignment:
+    """The transform fitted by an oracle that knows every correspondence.
+
+    The common landmarks, paired by their true ids, give the closed-form ML
+    (θ*, t*) of n paired points (``alignment.align``). A matcher must also
+    find the correspondences, which at low SNR even an association knowing
+    the true transform cannot, so this is the reference for the transform's
+    accuracy: with Gaussian noise it is efficient (its covariance is the
+    Cramér-Rao bound ``Alignment.cov`` with the correspondences known).
+    Labelled an oracle: it uses ground truth.
+
+    Parameters
+    ----------
+    scenario : Scenario or AgentPair
+        Ground truth (``p``, ``q``, ``ids_p``, ``ids_q``, ``sigma``).
+
+    Returns
+    -------
+    Alignment
+
+    Raises
+    ------
+    ValueError
+        When the maps share fewer than 2 landmarks.
+    """
+    _, ip, iq = np.intersect1d(scenario.ids_p, scenario.ids_q, return_indices=True)
+    if ip.size < 2:
+        raise ValueError(f"scenario must share at least 2 landmarks, got {ip.size}")
+    return align_pairs(np.asarray(scenario.p, float)[ip], np.asarray(scenario.q, float)[iq], float(scenario.sigma))
 
 
 def oracle_association(P, Q, theta, t, cov_p, cov_q, density_q: float, p_shared: float):

@@ -83,7 +83,12 @@ def test_limit_experiment_resumes_without_recomputing_finished_pairs(tmp_path, m
         calls.append("oracle")
         return seed % 7, 1, seed % 7 + 1, 2
 
-    monkeypatch.setattr(detector, "MEASURES", tuple(zip((fake_statistic, fake_consensus, fake_oracle),
+    def fake_correspondence(layout, snr, seed, unrelated):
+        calls.append("correspondence")
+        return (not unrelated and seed % 4 != 1,)
+
+    monkeypatch.setattr(detector, "MEASURES", tuple(zip((fake_statistic, fake_consensus, fake_oracle,
+                                                         fake_correspondence),
                                                         (columns for _, columns in detector.MEASURES))))
     path, snrs = tmp_path / "pairs.csv", (0.0, 2.5)
     fresh = detector.run_pairs(8, 1, path, snrs)
@@ -112,3 +117,5 @@ def test_limit_experiment_resumes_without_recomputing_finished_pairs(tmp_path, m
     # fake_statistic finds every related transform: accurate whatever the threshold, found only above it.
     assert list(table.ml_accurate_rate) == [1.0] * 4
     assert (table.found_rate == table.detected_rate).all() and (table.found_rate <= table.ml_accurate_rate).all()
+    # The correspondence oracle misses the related seeds 4k + 1: 2 of the 8 per cell.
+    assert list(table.correspondence_found_rate) == [0.75] * 4

@@ -124,3 +124,22 @@ def test_transform_oracle_knows_the_transform_but_not_the_prior():
     pairs = metrics.transform_oracle_association(sc.p, sc.q, sc.theta, sc.t, sc.sigma)
     ok = sc.ids_p[pairs[:, 0]] == sc.ids_q[pairs[:, 1]]
     assert (ok.sum(), (~ok).sum()) == (low["transform_oracle_correct_pairs"][0], low["transform_oracle_wrong_pairs"][0])
+
+
+def test_correspondence_oracle_fits_every_true_pair_with_the_cramer_rao_spread():
+    batch = mm.simulate.make_pairs(100, 0.75, 10, range(900, 1100), layout="interleaved")
+    z = []
+    for sc in (batch[k] for k in range(len(batch))):
+        fit = metrics.correspondence_oracle_transform(sc)
+        # The closed form over the landmarks paired by id (in p's order here: the same up to rounding).
+        where = {i: k for k, i in enumerate(sc.ids_q)}
+        ip = [k for k, i in enumerate(sc.ids_p) if i in where]
+        same = mm.align(sc.p[ip], sc.q[[where[sc.ids_p[k]] for k in ip]], sc.sigma)
+        assert fit.theta == pytest.approx(same.theta, abs=1e-12) and np.allclose(fit.t, same.t, rtol=0, atol=1e-12)
+        assert len(ip) == sc.n_common
+        z.append(mm.alignment.wrap_angle(fit.theta - sc.theta) / np.sqrt(fit.cov[0, 0]))
+    # Efficient: its rotation error is spread as the Cramér-Rao bound with the correspondences known says.
+    assert 0.85 < np.std(z) < 1.15 and abs(np.mean(z)) < 0.2
+    unrelated = mm.simulate.make_pair(20, 0.75, 10, rng=1, unrelated=True)
+    with pytest.raises(ValueError, match="scenario must share at least 2 landmarks"):
+        metrics.correspondence_oracle_transform(unrelated)
