@@ -53,7 +53,7 @@ import hashlib
 import numpy as np
 from scipy.spatial import ConvexHull, cKDTree
 
-from .alignment import Alignment, align_pairs, fit_transforms, rotate, rotation
+from .alignment import Alignment, fit_transforms, rotate, rotation
 from .consensus import associate, declared_triangles
 from .exhaustive import bump_height, em_refine, exact_log_lr, inside_hull, null_log_tail, pair_noise
 from .result import MergeBatch, build_from_parts
@@ -158,20 +158,28 @@ def _cell_index(x: np.ndarray, half: float, cell: float) -> np.ndarray:
     return np.floor(x, out=x)
 
 
-def _refine_all(P, Q, thetas, ts, r, cell, sigma):
-    """``_refine`` of every hypothesis at once, from all distances (maps of at most
-    ``MAX_SEARCH_LANDMARKS`` landmarks): the same pairs, in the same order, so the same fits.
+def _refine(P, Q, thetas, ts, r, cell, sigma, tree=None):
+    """Each hypothesis refined: nearest-neighbour pairs, refitted, the radius halved each round from the
+    coarse cell's to 2r; every hypothesis at once (one ragged fit per round).
+
+    The nearest neighbours come from ``tree`` (P's kd-tree, for large maps)
+    or, without one, from all distances, which give the kd-tree's to the bit
+    (√(dx² + dy²) within a strict upper bound): both find the same pairs, in
+    the same order, so the same fits.
 
     Returns one alignment, or None, per hypothesis.
     """
     live, theta, t = np.arange(len(thetas)), [float(v) for v in thetas], list(ts)
     for k in range(REFINE_ROUNDS):
+        bound = max(2 * r, 2 * cell / 2**k)
         x = np.stack([(Q - t[h]) @ rotation(theta[h]) for h in range(len(live))])
-        # The kd-tree's distance, to the bit: sqrt(dx² + dy²), and its strict upper bound.
-        d = np.sqrt((x[:, :, None, 0] - P[:, 0]) ** 2 + (x[:, :, None, 1] - P[:, 1]) ** 2)
-        i = d.argmin(axis=2)
-        dist = np.take_along_axis(d, i[..., None], axis=2)[..., 0]
-        h, j = np.nonzero(dist < max(2 * r, 2 * cell / 2**k))
+        if tree is None:
+            d = np.sqrt((x[:, :, None, 0] - P[:, 0]) ** 2 + (x[:, :, None, 1] - P[:, 1]) ** 2)
+            i = d.argmin(axis=2)
+            dist = np.take_along_axis(d, i[..., None], axis=2)[..., 0]
+        else:
+            dist, i = map(np.stack, zip(*(tree.query(y, distance_upper_bound=bound) for y in x)))
+        h, j = np.nonzero(dist < bound)
         i, dist = i[h, j], dist[h, j]
         # One-to-one, per hypothesis: each p landmark keeps its nearest q landmark.
         key = h * len(P) + i
@@ -192,27 +200,6 @@ def _refine_all(P, Q, thetas, ts, r, cell, sigma):
         sel = h == k
         out[hyp] = Alignment.from_fit(theta[k], t[k], cost[k], P[i[sel]], Q[j[sel]], sigma)
     return out
-
-
-def _refine(P, Q, theta, t, r, cell, sigma):
-    """Nearest-neighbour pairs, refitted, the radius halved each round from the coarse cell's to 2r.
-
-    Returns the last alignment, or None.
-    """
-    tree = cKDTree(P)
-    al = None
-    for k in range(REFINE_ROUNDS):
-        x = (Q - t) @ rotation(theta)
-        dist, i = tree.query(x, distance_upper_bound=max(2 * r, 2 * cell / 2**k))
-        j = np.flatnonzero(np.isfinite(dist))
-        # One-to-one: each p landmark keeps its nearest q landmark.
-        order = np.lexsort((dist[j], i[j]))
-        j = j[order][np.r_[True, i[j][order][1:] != i[j][order][:-1]]] if j.size else j
-        if j.size < 3:
-            return None
-        al = align_pairs(P[i[j]], Q[j], sigma)
-        theta, t = al.theta, al.t
-    return al
 
 
 def _log_nfa(P, Q, hypotheses, s: float, n_hypotheses: float, hull):
@@ -260,13 +247,11 @@ def search_pairs(P, Q, sigma: float, cov_p=None, cov_q=None):
         return *empty, np.inf
     Ps, Qs = _thinned(P, MAX_SEARCH_LANDMARKS), _thinned(Q, MAX_SEARCH_LANDMARKS)
     thetas, ts, cell, n_hyp = _hypotheses(Ps, Qs, r)
-    refined = []
-    for al in _refine_all(Ps, Qs, thetas, ts, r, cell, sigma):
-        if al is not None and (len(Ps) < len(P) or len(Qs) < len(Q)):
-            # Refined on the sparse subsets first: their spacing tolerates the coarse cell's error.
-            al = _refine(P, Q, al.theta, al.t, r, r, sigma)
-        if al is not None:
-            refined.append(al)
+    refined = [al for al in _refine(Ps, Qs, thetas, ts, r, cell, sigma) if al is not None]
+    if refined and (len(Ps) < len(P) or len(Qs) < len(Q)):
+        # Refined on the sparse subsets first (their spacing tolerates the coarse cell's error), then on the maps.
+        refined = [al for al in _refine(P, Q, [al.theta for al in refined], [al.t for al in refined], r, r, sigma,
+                                        cKDTree(P)) if al is not None]
     if not refined:
         return *empty, np.inf
     log_nfa, refined = _log_nfa(P, Q, refined, r, n_hyp, hull)

@@ -100,19 +100,24 @@ def test_search_declines_where_the_noise_is_comparable_to_the_landmark_spacing()
 
 def test_hypotheses_refined_together_give_the_alignments_refined_one_at_a_time():
     # Coarse hypotheses at 10 dB: some refine to the transform, some to chance alignments, some die.
+    from scipy.spatial import cKDTree
+
     checked = died = 0
     for rng in range(6):
         sc = mm.simulate.make_pair(60, 0.75, 10.0, rng=rng)
         r = np.sqrt(2.0) * sc.sigma
         thetas, ts, cell, _ = search._hypotheses(sc.p, sc.q, r)
         thetas, ts = np.r_[thetas, thetas[0] + 2.0], np.r_[ts, ts[:1] + 1e6]  # one that pairs nothing
-        together = search._refine_all(sc.p, sc.q, thetas, ts, r, cell, sc.sigma)
-        for theta, t, al in zip(thetas, ts, together):
-            alone = search._refine(sc.p, sc.q, float(theta), t, r, cell, sc.sigma)
-            assert (al is None) == (alone is None)
+        together = search._refine(sc.p, sc.q, thetas, ts, r, cell, sc.sigma)
+        # Nearest neighbours from a kd-tree (the large-map path) give the same alignments.
+        by_tree = search._refine(sc.p, sc.q, thetas, ts, r, cell, sc.sigma, cKDTree(sc.p))
+        for k, (al, tree_al) in enumerate(zip(together, by_tree)):
+            [alone] = search._refine(sc.p, sc.q, thetas[k:k + 1], ts[k:k + 1], r, cell, sc.sigma)
+            assert (al is None) == (alone is None) == (tree_al is None)
             died += al is None
             if al is not None:
                 checked += 1
-                assert al.theta == alone.theta and np.array_equal(al.t, alone.t) and al.cost == alone.cost
-                assert np.array_equal(al.mu, alone.mu)
+                for other in (alone, tree_al):
+                    assert al.theta == other.theta and np.array_equal(al.t, other.t) and al.cost == other.cost
+                    assert np.array_equal(al.mu, other.mu)
     assert checked >= 20 and died >= 6
