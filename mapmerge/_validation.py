@@ -70,3 +70,14 @@ def check_covariances(cov, n: int, name: str):
     if not (np.all(np.isfinite(arr)) and np.all(sym) and np.all(arr[:, 0, 0] > 0) and np.all(det > 0)):
         raise ValueError(f"{name} must hold symmetric positive-definite 2x2 covariances")
     return arr
+
+
+def check_rng(rng, name: str = "rng"):
+    """``np.random.default_rng(rng)`` (None stays None), or a one-line ValueError naming the argument."""
+    if rng is None:
+        return None
+    try:
+        return np.random.default_rng(rng)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be None, a non-negative int, a SeedSequence or a Generator, "
+                         f"got {rng!r}") from None

@@ -23,7 +23,7 @@ from typing import Callable
 import numpy as np
 
 from . import consensus, search
-from ._validation import check_covariances, check_points, check_sigma
+from ._validation import check_covariances, check_points, check_rng, check_sigma
 from .baselines import astroalign as astroalign_baseline
 from .baselines import groth as groth_baseline
 from .matching import OBJECTIVES, TriangleMatch, match_triangles, resolve_correspondences, resolve_log_tau
@@ -235,6 +235,7 @@ def _merge(P, Q, sigma, tau, method, objective, cov_p, cov_q, rng) -> MergeBatch
     get_method(method)
     if objective not in OBJECTIVES:
         raise ValueError(f"objective must be one of {OBJECTIVES}, got {objective!r}")
+    rng = check_rng(rng)
     match = match_stage(P, Q, sigma, method, objective, log_tau)
     return merge_at(P, Q, sigma, match, np.full(len(P), log_tau), method, cov_p, cov_q, rng)
 

@@ -48,6 +48,7 @@ import numpy as np
 
 from scipy.spatial import Delaunay
 
+from ._validation import check_rng
 from .alignment import covariance_in_p_frame, rotate
 
 #: Width / height of each map's rectangle (strip layout).
@@ -251,7 +252,7 @@ def make_pair(
     ValueError
         On out-of-range arguments.
     """
-    return make_pairs(n_landmarks, overlap, snr_db, [rng], aspect, unrelated, layout, p_detect, clutter,
+    return make_pairs(n_landmarks, overlap, snr_db, [check_rng(rng)], aspect, unrelated, layout, p_detect, clutter,
                       anisotropy)[0]
 
 
@@ -279,7 +280,7 @@ def make_pairs(n_landmarks: int, overlap: float, snr_db: float, seeds, aspect: f
     perm_p, perm_q = np.empty((B, m), np.intp), np.empty((B, m), np.intp)
     u3, z = np.empty((B, 3)), np.empty((B, 2, m, 2))
     for k, seed in enumerate(seeds):
-        rng = np.random.default_rng(seed)
+        rng = np.random.default_rng(check_rng(seed, "each seed"))
         # One call per run of draws: ``uniform(a, b)`` is ``a + (b - a)·random``
         # and ``normal(0, σ)`` is ``σ·standard_normal``, so scaling afterwards
         # gives the same bits as drawing block by block.

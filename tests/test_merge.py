@@ -122,6 +122,8 @@ def test_unrelated_maps_give_no_match():
         ({"tau": "nope"}, "tau"),
         ({"method": "magic"}, "method"),
         ({"objective": "max"}, "objective"),
+        ({"rng": "seed"}, "rng must be None, a non-negative int"),
+        ({"rng": -3}, "rng must be None, a non-negative int"),
     ],
 )
 def test_merge_maps_rejects_bad_input(rng, kwargs, match):

@@ -50,11 +50,15 @@ def test_reproducible_and_seed_sensitive():
         ({"n_landmarks": 4, "overlap": 0.5}, "at least 3 common"),
         ({"snr_db": float("nan")}, "snr_db"),
         ({"aspect": -1.0}, "aspect"),
+        ({"rng": 1.5}, "rng must be None, a non-negative int"),
     ],
 )
 def test_bad_arguments(kwargs, match):
     with pytest.raises(ValueError, match=match):
         mm.simulate.make_pair(**kwargs)
+    if "rng" in kwargs:
+        with pytest.raises(ValueError, match="each seed must be"):
+            mm.simulate.make_pairs(10, 0.75, 20, [1, kwargs["rng"]])
 
 
 def test_interleaved_layout_puts_unshared_landmarks_among_common_ones():
