@@ -54,6 +54,15 @@ def summary(res) -> dict:
     return out
 
 
+def _in_file_terms(message: str, args) -> str:
+    """A library error about ``P`` / ``Q`` / ``cov_p`` / ``cov_q`` said of the map file it came from."""
+    for name, said in (("P ", f"{args.map_a}: "), ("Q ", f"{args.map_b}: "),
+                       ("cov_p ", f"{args.map_a}: covariances "), ("cov_q ", f"{args.map_b}: covariances ")):
+        if message.startswith(name):
+            return said + message[len(name):]
+    return message
+
+
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     try:
@@ -63,7 +72,7 @@ def main(argv=None) -> int:
         res = merge_maps(map_p.points, map_q.points, args.sigma, tau=args.tau, method=args.method,
                          cov_p=map_p.cov, cov_q=map_q.cov, rng=args.seed)
     except (MapFileError, ValueError, ImportError) as exc:
-        print(f"mapmerge: error: {exc}", file=sys.stderr)
+        print(f"mapmerge: error: {_in_file_terms(str(exc), args)}", file=sys.stderr)
         return 2
     info = summary(res)
     if not res.matched:

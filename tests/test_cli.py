@@ -61,6 +61,9 @@ def test_unrelated_maps_exit_1_and_write_nothing(tmp_path, capsys):
     ("x,y\n1,2\n3,4\n", "at least 3 landmarks"),
     ("x,y,sxx,sxy\n1,2,1,0\n3,4,1,0\n5,6,1,0\n", "needs all of sxx, sxy, syy"),
     ("x,y,sigma\n1,2,1\n3,4,0\n5,6,1\n", "sigma must be > 0"),
+    # Errors of the maps' geometry name the file, not the library's argument.
+    ("x,y\n0,0\n1,1\n2,2\n", "bad.csv: points are all collinear"),
+    ("x,y\n0,0\n1,0\n0,1\n1,0\n", "bad.csv: contains duplicate points"),
 ])
 def test_bad_files_give_one_line_and_exit_2(tmp_path, capsys, content, message):
     a, _, _ = _maps(tmp_path)
