@@ -186,12 +186,28 @@ def assign_sparse(log_lr: np.ndarray, pairs: np.ndarray, shape, objective: str =
     return np.stack([r[real], c[real]], axis=1).astype(np.intp)
 
 
+#: Label-spreading sweeps ``candidate_components`` tries before it hands a
+#: long chain of contested pairs to scipy's connected components.
+LABEL_SWEEPS = 6
+
+
 def candidate_components(i: np.ndarray, j: np.ndarray, n_p: int, n_q: int) -> np.ndarray:
     """Connected component of each candidate pair (i, j) in the bipartite graph of all candidates.
 
     An assignment over the candidates decomposes into one small assignment
     per component (``component_blocks``).
     """
+    # Contests are mostly a few pairs: spreading the smallest pair index over shared
+    # landmarks settles them in a few sweeps, far cheaper than a sparse graph.
+    label = np.arange(i.size)
+    for _ in range(LABEL_SWEEPS):
+        low_p, low_q = np.full(n_p, i.size), np.full(n_q, i.size)
+        np.minimum.at(low_p, i, label)
+        np.minimum.at(low_q, j, label)
+        spread = np.minimum(low_p[i], low_q[j])
+        if np.array_equal(spread, label):
+            return label
+        label = spread
     graph = coo_matrix((np.ones(i.size), (i, n_p + j)), shape=(n_p + n_q,) * 2)
     _, label = connected_components(graph, directed=False)
     return label[i]

@@ -69,3 +69,23 @@ def test_correspondences_count_the_dropped_rivals():
                                          np.array([-1.0, -2.0]))
     np.testing.assert_array_equal(pairs, [[0, 5], [1, 6], [2, 7]])  # the better-scored triangle wins landmark 2
     assert n_conflicts == 1
+
+
+def test_candidate_components_are_the_connected_components_of_the_candidate_graph():
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    from mapmerge.matching import LABEL_SWEEPS, candidate_components
+
+    rng = np.random.default_rng(5)
+    chain = np.arange(4 * LABEL_SWEEPS)  # p0-q0-p1-q1-...: too long for the sweeps, so scipy decides
+    cases = [(chain[:-1] // 2 + chain[:-1] % 2, chain[:-1] // 2, 3 * LABEL_SWEEPS, 3 * LABEL_SWEEPS)]
+    for _ in range(200):
+        n_p, n_q, m = rng.integers(1, 30), rng.integers(1, 30), rng.integers(1, 40)
+        cases.append((rng.integers(0, n_p, m), rng.integers(0, n_q, m), n_p, n_q))
+    for i, j, n_p, n_q in cases:
+        label = candidate_components(i, j, n_p, n_q)
+        graph = coo_matrix((np.ones(i.size), (i, n_p + j)), shape=(n_p + n_q,) * 2)
+        truth = connected_components(graph, directed=False)[1][i]
+        # The same partition of the candidates, whatever the numbering.
+        assert np.array_equal(label[:, None] == label[None], truth[:, None] == truth[None])
