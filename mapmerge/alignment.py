@@ -163,16 +163,13 @@ class Alignment:
     sigma: float
 
     @functools.cached_property
-    def _covariances(self):
+    def cov(self) -> np.ndarray:
         return transform_covariance(self.mu, self.theta, self.sigma)
 
-    @property
-    def cov(self) -> np.ndarray:
-        return self._covariances[0]
-
-    @property
+    @functools.cached_property
     def mu_cov(self) -> np.ndarray:
-        return self._covariances[1]
+        # Only the combined map needs it; the verification stages read cov alone.
+        return fused_covariances(self.mu, self.theta, self.sigma, self.cov)
 
     @classmethod
     def from_fit(cls, theta: float, t: np.ndarray, cost: float, P: np.ndarray, Q: np.ndarray,
@@ -183,25 +180,27 @@ class Alignment:
                    log_lr=-float(cost) / (2.0 * sigma**2), dof=2 * P.shape[0] - 3, sigma=sigma)
 
 
-def transform_covariance(mu: np.ndarray, theta: float, sigma: float):
-    """Covariance of (θ, t) and of each µ_v for n paired landmarks.
+def transform_covariance(mu: np.ndarray, theta: float, sigma: float) -> np.ndarray:
+    """Covariance of (θ, t) for n paired landmarks.
 
     The Fisher information of eq. (5) in (θ, t, µ) has a 2x2 block 2I/σ² per
     landmark; eliminating µ leaves ``(1/2σ²) [[Σ‖µ‖², bᵀ], [b, n I]]`` for
-    (θ, t) with ``b = R J Σµ``. The µ_v block of the inverse is
-    ``σ²/2 I + ¼ [Jµ_v, Rᵀ] Σ_θt [Jµ_v, Rᵀ]ᵀ``.
+    (θ, t) with ``b = R J Σµ``.
     """
-    R = rotation(theta)
-    n = mu.shape[0]
-    b = R @ ROT90 @ mu.sum(axis=0)
+    b = rotation(theta) @ ROT90 @ mu.sum(axis=0)
     info = np.empty((3, 3))
     info[0, 0] = np.sum(mu**2)
     info[0, 1:] = info[1:, 0] = b
-    info[1:, 1:] = n * np.eye(2)
-    cov = 2.0 * sigma**2 * np.linalg.inv(info)
-    G = np.concatenate([(mu @ ROT90.T)[:, :, None], np.broadcast_to(R.T, (n, 2, 2))], axis=2)
-    mu_cov = 0.5 * sigma**2 * np.eye(2) + 0.25 * G @ cov @ G.transpose(0, 2, 1)
-    return cov, mu_cov
+    info[1:, 1:] = mu.shape[0] * np.eye(2)
+    return 2.0 * sigma**2 * np.linalg.inv(info)
+
+
+def fused_covariances(mu: np.ndarray, theta: float, sigma: float, cov: np.ndarray) -> np.ndarray:
+    """Covariance (n, 2, 2) of each µ_v, from the inverse Fisher information's µ_v block:
+    ``σ²/2 I + ¼ [Jµ_v, Rᵀ] Σ_θt [Jµ_v, Rᵀ]ᵀ`` (``cov`` = Σ_θt, ``transform_covariance``)."""
+    n = mu.shape[0]
+    G = np.concatenate([(mu @ ROT90.T)[:, :, None], np.broadcast_to(rotation(theta).T, (n, 2, 2))], axis=2)
+    return 0.5 * sigma**2 * np.eye(2) + 0.25 * G @ cov @ G.transpose(0, 2, 1)
 
 
 def mapped_covariance(x: np.ndarray, theta: float, cov: np.ndarray, own) -> np.ndarray:
