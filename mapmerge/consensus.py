@@ -263,7 +263,35 @@ def _own_covariances(cov, n: int, sigma: float) -> np.ndarray:
     return np.broadcast_to(sigma**2 * np.eye(2), (n, 2, 2)) if cov is None else cov
 
 
-def posterior_association(P, x, cov_p, cov_x, log_prior: float, with_margin: bool = True):
+def pair_log_odds(P, x, cov_p, cov_x, log_prior: float):
+    """Every pair that can score > 0 at ``log_prior`` (or any smaller prior), and its score without the prior.
+
+    A pair scores > 0 only if d² < 2 (log_prior - log(2π √det C)), and
+    det C >= min det Σp + min det Σx, the largest eigenvalue of C at most the
+    sum of the largest ones: that bounds the search radius.
+
+    Returns
+    -------
+    i, j : (C,) int ndarray
+        Candidate pairs (p index, index into x).
+    log_odds : (C,) ndarray
+        ``log N(P_i - x_j; 0, cov_p[i] + cov_x[j])``.
+    """
+    none = np.empty(0, dtype=np.intp)
+    det_min = np.linalg.det(cov_p).min() + np.linalg.det(cov_x).min()
+    largest = np.linalg.eigvalsh(cov_p)[:, 1].max() + np.linalg.eigvalsh(cov_x)[:, 1].max()
+    d2_max = 2 * (log_prior - np.log(2 * np.pi * np.sqrt(det_min)))
+    if d2_max <= 0:
+        return none, none, np.empty(0)
+    cand = cKDTree(P).sparse_distance_matrix(cKDTree(x), np.sqrt(d2_max * largest), output_type="ndarray")
+    i, j = cand["i"], cand["j"]
+    C = cov_p[i] + cov_x[j]
+    e = P[i] - x[j]
+    d2 = np.einsum("ki,kij,kj->k", e, np.linalg.inv(C), e)
+    return i, j, -0.5 * d2 - np.log(2 * np.pi * np.sqrt(np.linalg.det(C)))
+
+
+def posterior_association(P, x, cov_p, cov_x, log_prior: float, with_margin: bool = True, candidates=None):
     """The maximum-posterior one-to-one association of P and mapped q landmarks x.
 
     Pair (i, j) scores its log-odds against "both unshared":
@@ -285,6 +313,9 @@ def posterior_association(P, x, cov_p, cov_x, log_prior: float, with_margin: boo
     with_margin : bool, default True
         Compute ``margin`` (one more assignment per contested pair: most of
         the cost where many pairs compete).
+    candidates : tuple, optional
+        ``pair_log_odds(P, x, cov_p, cov_x, L)`` for some ``L >= log_prior``
+        (computed once for several priors); by default, for ``log_prior``.
 
     Returns
     -------
@@ -296,18 +327,8 @@ def posterior_association(P, x, cov_p, cov_x, log_prior: float, with_margin: boo
         pairs the data cannot tell from a swap. None unless ``with_margin``.
     """
     empty = np.empty((0, 2), dtype=np.intp), (np.empty(0) if with_margin else None)
-    # A pair scores > 0 only if d² < 2 (log_prior - log(2π √det C)): bounds the search radius.
-    det_min = np.linalg.det(cov_p).min() + np.linalg.det(cov_x).min()
-    largest = np.linalg.eigvalsh(cov_p)[:, 1].max() + np.linalg.eigvalsh(cov_x)[:, 1].max()
-    d2_max = 2 * (log_prior - np.log(2 * np.pi * np.sqrt(det_min)))
-    if d2_max <= 0:
-        return empty
-    cand = cKDTree(P).sparse_distance_matrix(cKDTree(x), np.sqrt(d2_max * largest), output_type="ndarray")
-    i, j = cand["i"], cand["j"]
-    C = cov_p[i] + cov_x[j]
-    e = P[i] - x[j]
-    d2 = np.einsum("ki,kij,kj->k", e, np.linalg.inv(C), e)
-    score = -0.5 * d2 - np.log(2 * np.pi * np.sqrt(np.linalg.det(C))) + log_prior
+    i, j, log_odds = pair_log_odds(P, x, cov_p, cov_x, log_prior) if candidates is None else candidates
+    score = log_odds + log_prior
     keep = score > 0
     i, j, score = i[keep], j[keep], score[keep]
     if i.size == 0:
@@ -371,10 +392,13 @@ def associate(P, Q, alignment, sigma, cov_p=None, cov_q=None):
     # The pair covariance of each q landmark among p's, with a typical p landmark.
     det_pair = np.linalg.det(cov_x[inside] + np.median(cov_p, axis=0))
     shared = SHARED_PRIOR
+    # The candidates of the largest prior any round can reach serve every round.
+    candidates = pair_log_odds(P, x, cov_p, cov_x, np.log(SHARED_RANGE[1] / (1 - SHARED_RANGE[1])) - log_density)
     for round_ in range(1, PRIOR_ROUNDS + 1):
         log_prior = np.log(shared / (1 - shared)) - log_density
         # Only the association returned needs its margins.
-        pairs, margin = posterior_association(P, x, cov_p, cov_x, log_prior, with_margin=round_ == PRIOR_ROUNDS)
+        pairs, margin = posterior_association(P, x, cov_p, cov_x, log_prior, with_margin=round_ == PRIOR_ROUNDS,
+                                              candidates=candidates)
         if round_ == PRIOR_ROUNDS:
             break
         # π re-estimated as the paired share of q's landmarks among p's, over the share of
