@@ -27,7 +27,7 @@ from scipy.sparse.csgraph import connected_components, min_weight_full_bipartite
 from scipy.spatial import cKDTree
 from scipy.special import chdtri
 
-from .statistic import log_lr_from_cost, min_cost, pairwise_log_lr
+from .statistic import log_lr_from_cost, min_cost, pairwise_log_lr_blocks
 from .triangles import PARALLEL_MIN_LANDMARKS, TriangleBatch, triangulate_batches
 
 OBJECTIVES = ("lr", "loglr")
@@ -408,30 +408,34 @@ def match_triangles(P: np.ndarray, Q: np.ndarray, sigma: np.ndarray, objective: 
     if sparse:
         parts = [_sparse_pairs(tri_p, tri_q, vp, vq, b, float(sigma[b]), objective, cyclic, log_tau, solve_lp)
                  for b in range(len(tri_p))]
-        trial = np.repeat(np.arange(len(parts)), [len(p[0]) for p in parts])
-        i, j = (np.concatenate([p[0][:, k] for p in parts]) for k in (0, 1))
-        score, shift = np.concatenate([p[1] for p in parts]), np.concatenate([p[2] for p in parts])
     else:
-        log_lr, shifts = pairwise_log_lr(tri_p, tri_q, vp, vq, sigma, cyclic)
-        trial, i, j = _assign_each(log_lr, tri_p.count, tri_q.count, objective)
-        score, shift = log_lr[trial, i, j], shifts[trial, i, j]
+        parts = _dense_pairs(tri_p, tri_q, vp, vq, sigma, objective, cyclic)
+    trial = np.repeat(np.arange(len(parts)), [len(p[0]) for p in parts])
+    i, j, score, shift = (np.concatenate([p[k] for p in parts]) for k in range(4))
     roll = (np.arange(3)[None, :] + shift[:, None].astype(np.intp)) % 3
     gp, gq = tri_p.offsets[trial] + i, tri_q.offsets[trial] + j
     return TriangleMatch(tri_p, tri_q, trial, np.stack([i, j], axis=1).astype(np.intp), score,
                          vp[gp], np.take_along_axis(vq[gq], roll, axis=1))
 
 
-def _assign_each(log_lr, count_p, count_q, objective):
-    """The LP (14) of every map pair on its own triangles: (trial, i, j) of all tentative pairs."""
-    weight = lp_weight(log_lr, objective)
-    parts = [linear_sum_assignment(weight[k, : count_p[k], : count_q[k]], maximize=True)
-             for k in range(len(weight))]
-    trial = np.repeat(np.arange(len(parts)), [len(i) for i, _ in parts])
-    return trial, np.concatenate([i for i, _ in parts]), np.concatenate([j for _, j in parts])
+def _dense_pairs(tri_p, tri_q, vp, vq, sigma, objective, cyclic):
+    """Per map pair, the LP (14) on all its triangle pairs: (i, j, log Λ, shift) of its tentative pairs.
+
+    Solved block by block as the scores come, so that memory stays at one
+    block's whatever the number of map pairs (no (B, Tp, Tq) array of scores
+    or weights is ever held).
+    """
+    parts = [None] * len(tri_p)
+    for trials, log_lr, shift in pairwise_log_lr_blocks(tri_p, tri_q, vp, vq, sigma, cyclic):
+        weight = lp_weight(log_lr, objective)
+        for k, b in enumerate(trials):
+            i, j = linear_sum_assignment(weight[k, : tri_p.count[b], : tri_q.count[b]], maximize=True)
+            parts[b] = i, j, log_lr[k, i, j], shift[k, i, j]
+    return parts
 
 
 def _sparse_pairs(tri_p, tri_q, vp, vq, b, sigma, objective, cyclic, log_tau, solve_lp):
-    """Tentative pairs, scores and shifts of map pair ``b`` on the gated sparse graph."""
+    """(i, j, log Λ, shift) of the tentative pairs of map pair ``b`` on the gated sparse graph."""
     P, Q = tri_p.maps[b], tri_q.maps[b]
     vp, vq = vp[tri_p.offsets[b]:tri_p.offsets[b + 1]], vq[tri_q.offsets[b]:tri_q.offsets[b + 1]]
     cand = candidate_pairs(P[vp], Q[vq], sigma, log_tau, SPARSE_NEIGHBOURS)
@@ -441,6 +445,6 @@ def _sparse_pairs(tri_p, tri_q, vp, vq, b, sigma, objective, cyclic, log_tau, so
         chosen = assign_sparse(score, cand, (len(vp), len(vq)), objective)
         # Both sorted by p index: map the chosen pairs back to their candidate rows.
         at = np.searchsorted(cand[:, 0] * len(vq) + cand[:, 1], chosen[:, 0] * len(vq) + chosen[:, 1])
-        return chosen, score[at], shift[at]
+        return chosen[:, 0], chosen[:, 1], score[at], shift[at]
     keep = score >= log_tau  # every candidate that can be declared
-    return cand[keep], score[keep], shift[keep]
+    return cand[keep, 0], cand[keep, 1], score[keep], shift[keep]

@@ -25,7 +25,7 @@ import numpy as np
 from ._validation import check_sigma
 from .triangles import TriangleBatch, ccw_order
 
-#: Triangle pairs scored per numpy call by ``pairwise_log_lr``: small enough
+#: Triangle pairs scored per numpy call by ``pairwise_log_lr_blocks``: small enough
 #: that the temporaries stay in cache (64 maps of 20 landmarks; one big map).
 BLOCK_PAIRS = 2**16
 
@@ -127,9 +127,9 @@ def min_cost(cp, cq, cyclic: bool = False, pairwise: bool = True):
     return np.maximum(gamma - best, 0.0), shift
 
 
-def pairwise_log_lr(tri_p: TriangleBatch, tri_q: TriangleBatch, vp: np.ndarray, vq: np.ndarray,
-                    sigma: np.ndarray, cyclic: bool = False):
-    """log Λ of every triangle pair of every map pair of a batch.
+def pairwise_log_lr_blocks(tri_p: TriangleBatch, tri_q: TriangleBatch, vp: np.ndarray, vq: np.ndarray,
+                           sigma: np.ndarray, cyclic: bool = False):
+    """log Λ of every triangle pair of every map pair of a batch, a block of map pairs at a time.
 
     Parameters
     ----------
@@ -141,11 +141,15 @@ def pairwise_log_lr(tri_p: TriangleBatch, tri_q: TriangleBatch, vp: np.ndarray, 
     sigma : (B,) ndarray
     cyclic : bool
 
-    Returns
-    -------
-    log_lr : (B, Tp_max, Tq_max) ndarray
-        Entries beyond a map's own triangles are -inf.
-    shift : (B, Tp_max, Tq_max) int8 ndarray
+    Yields
+    ------
+    trials : (b,) int ndarray
+        The block's map pairs.
+    log_lr : (b, tp, tq) ndarray
+        Entry ``[k, i, j]`` is triangle i of map p ``trials[k]`` against
+        triangle j of its map q, for i and j below the map's own triangle
+        counts; entries past them are padding, not scores.
+    shift : (b, tp, tq) int8 ndarray
 
     Map pairs go in blocks of about ``BLOCK_PAIRS`` triangle pairs, grouped by
     triangle count so that each block is padded only to its own largest
@@ -153,24 +157,17 @@ def pairwise_log_lr(tri_p: TriangleBatch, tri_q: TriangleBatch, vp: np.ndarray, 
     """
     pad_p, pad_q = tri_p.padded(vp), tri_q.padded(vq)
     count_p, count_q = tri_p.count, tri_q.count
-    B = len(tri_p)
     block = max(1, BLOCK_PAIRS // max(pad_p.shape[1] * pad_q.shape[1], 1))
     flat_p, flat_q = tri_p.maps.reshape(-1, 2), tri_q.maps.reshape(-1, 2)
     n_p, n_q = tri_p.maps.shape[1], tri_q.maps.shape[1]
-    # Padding scores -inf: Λ = 0, never chosen over a real pair's Λ > 0 and
-    # never overflows when exponentiated.
-    log_lr = np.full((B, pad_p.shape[1], pad_q.shape[1]), -np.inf)
-    shift = np.zeros(log_lr.shape, dtype=np.int8)
     order = np.lexsort((count_q, count_p))
-    for a in range(0, B, block):
+    for a in range(0, len(tri_p), block):
         trials = order[a:a + block]
         tp, tq = count_p[trials].max(), count_q[trials].max()
         cp = flat_p[trials[:, None, None] * n_p + pad_p[trials, :tp]]
         cq = flat_q[trials[:, None, None] * n_q + pad_q[trials, :tq]]
-        cost, s = min_cost(cp, cq, cyclic, pairwise=True)
-        log_lr[trials, :tp, :tq] = log_lr_from_cost(cost, sigma[trials][:, None, None])
-        shift[trials, :tp, :tq] = s
-    return log_lr, shift
+        cost, shift = min_cost(cp, cq, cyclic, pairwise=True)
+        yield trials, log_lr_from_cost(cost, sigma[trials][:, None, None]), shift
 
 
 def _check_triangles(coords, name: str) -> np.ndarray:
