@@ -17,6 +17,7 @@ import sys
 
 import numpy as np
 
+from ._validation import check_points
 from .mapfiles import MapFileError, read_map, write_map
 from .merging import DEFAULT_TAU, METHODS, merge_maps
 
@@ -54,25 +55,18 @@ def summary(res) -> dict:
     return out
 
 
-def _in_file_terms(message: str, args) -> str:
-    """A library error about ``P`` / ``Q`` / ``cov_p`` / ``cov_q`` said of the map file it came from."""
-    for name, said in (("P ", f"{args.map_a}: "), ("Q ", f"{args.map_b}: "),
-                       ("cov_p ", f"{args.map_a}: covariances "), ("cov_q ", f"{args.map_b}: covariances ")):
-        if message.startswith(name):
-            return said + message[len(name):]
-    return message
-
-
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     try:
         map_p, map_q = read_map(args.map_a), read_map(args.map_b)
+        for landmarks in (map_p, map_q):  # a map's geometry errors named by its file, not by P / Q
+            check_points(landmarks.points, f"{landmarks.source}:")
         if (map_p.cov is None) != (map_q.cov is None):
             raise ValueError("give covariances (sxx, sxy, syy or sigma) in both maps or in neither")
         res = merge_maps(map_p.points, map_q.points, args.sigma, tau=args.tau, method=args.method,
                          cov_p=map_p.cov, cov_q=map_q.cov, rng=args.seed)
     except (MapFileError, ValueError, ImportError) as exc:
-        print(f"mapmerge: error: {_in_file_terms(str(exc), args)}", file=sys.stderr)
+        print(f"mapmerge: error: {exc}", file=sys.stderr)
         return 2
     info = summary(res)
     if not res.matched:
