@@ -277,10 +277,11 @@ def resolve_correspondences(vertices_p, vertices_q, log_lr):
     vp, vq = np.ravel(vertices_p).astype(np.int64), np.ravel(vertices_q).astype(np.int64)
     n = int(vq.max()) + 1
     keys = vp * n + vq
-    order = np.argsort(keys, kind="stable")
+    # Only each group's size and best score are read, so the order within a group is free.
+    order = np.argsort(keys)
     keys = keys[order]
     start = np.r_[0, np.flatnonzero(keys[1:] != keys[:-1]) + 1]
-    uniq = np.stack([keys[start] // n, keys[start] % n], axis=1)  # sorted by (p, q), as the keys
+    uniq = np.stack(np.divmod(keys[start], n), axis=1)  # sorted by (p, q), as the keys
     # Only candidates sharing a landmark with another can lose; rank those.
     contested = np.flatnonzero((np.bincount(uniq[:, 0])[uniq[:, 0]] > 1) | (np.bincount(uniq[:, 1])[uniq[:, 1]] > 1))
     keep = np.ones(len(uniq), dtype=bool)
@@ -290,7 +291,8 @@ def resolve_correspondences(vertices_p, vertices_q, log_lr):
     best = np.maximum.reduceat(np.repeat(log_lr, 3)[order], start)[contested]
     cp, cq = uniq[contested, 0], uniq[contested, 1]
     rank = np.empty(contested.size, dtype=np.int64)
-    rank[np.lexsort((cq, cp, -best, -votes))] = np.arange(contested.size)
+    # lexsort is stable and contested pairs are in (p, q) order, which breaks the remaining ties.
+    rank[np.lexsort((-best, -votes))] = np.arange(contested.size)
     # Greedy in rank order, in rounds: a candidate ranked first among the
     # live ones sharing its p and its q is exactly one the sequential greedy
     # keeps; keeping it kills its rivals. Conflicts are rare, so few rounds.
