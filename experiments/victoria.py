@@ -185,15 +185,16 @@ def figure(examples: pd.DataFrame, out: Path, cut: int = DEFAULT_CUT, method: st
         return _save(fig, out, "victoria_park")
 
 
-#: Cuts and landmark-confirmation thresholds of ``confirmation_table``.
-CONFIRMATION_CUTS = (1500, 2500, 3483, 4500, 5500, 6200)
+#: The preset's cuts, for the tables on the SLAM maps beyond the sweep's.
+SLAM_CUTS = (1500, 2500, 3483, 4500, 5500, 6200)
+#: Landmark-confirmation thresholds of ``confirmation_table``.
 CONFIRMATION_SIGHTINGS = (1, 2, 3)
 
 
 def confirmation_table() -> pd.DataFrame:
     """``consensus`` on the SLAM maps when each agent publishes only trees it sighted at least k times."""
     rows = []
-    for cut in CONFIRMATION_CUTS:
+    for cut in SLAM_CUTS:
         for k in CONFIRMATION_SIGHTINGS:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # map quality is in the main table
@@ -222,12 +223,36 @@ def solver_check() -> pd.DataFrame:
     return pd.DataFrame([{"poses": len(log.pose_ids), "trees": len(ids), **fit_error(points, log.trees[ids])}])
 
 
+#: Solver settings other than the defaults that ``solver_settings_table`` tries.
+SOLVER_VARIANTS = {
+    "relinearise at every pose": {"relinearize_skip": 1},
+    "no batch refinement": {"batch_refinement": False},
+    "Huber kernel on sightings": {"sighting_kernel": "huber"},
+}
+
+
+def solver_settings_table() -> pd.DataFrame:
+    """Each agent's map error (RMSE after the fit by tree id, m) with the default solver and each variant."""
+    log = load_log()
+    rows = []
+    for cut in SLAM_CUTS:
+        for agent, (start, stop) in (("p", (0, cut)), ("q", (cut, None))):
+            row = {"cut": cut, "agent": agent}
+            for name, settings in {"default": {}, **SOLVER_VARIANTS}.items():
+                ids, points, _ = slam_map(start, stop, solver=settings)
+                row[name] = fit_error(points, log.trees[ids])["rmse"]
+            row["largest change"] = max(abs(row[name] - row["default"]) for name in SOLVER_VARIANTS)
+            rows.append(row)
+    return pd.DataFrame(rows)
+
+
 def write(sweep: Path, out: Path) -> list[Path]:
     trials, examples = load_runs(sweep)
     out.mkdir(parents=True, exist_ok=True)
     paths = [*save_table(table(trials, examples), out / "table"), *figure(examples, out)]
     if (trials.source == "slam").any():
         paths += save_table(solver_check(), out / "solver_check")
+        paths += save_table(solver_settings_table(), out / "solver_settings")
         paths += save_table(confirmation_table(), out / "min_sightings")
     return paths
 

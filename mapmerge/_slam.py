@@ -11,8 +11,8 @@ graph's error. The trees' joint covariance (2m x 2m) comes from the
 solution kept; ``datasets.slam_map`` derives per-tree covariances from it.
 
 Solutions are cached on disk (``cache_dir()``), keyed by the data file's
-contents, the agent's pose range and ``SETTINGS``: an ordinary directory of
-``.npz`` files that can be deleted at any time.
+contents, the agent's pose range and the solver's settings: an ordinary
+directory of ``.npz`` files that can be deleted at any time.
 """
 
 from __future__ import annotations
@@ -25,14 +25,46 @@ from pathlib import Path
 import numpy as np
 
 #: The solver's settings (GTSAM's own defaults for relinearisation) and the
-#: anchor of the first pose. Part of the cache key.
+#: anchor of the first pose. Part of the cache key. ``sighting_kernel``:
+#: ``None`` (Gaussian sightings, as the data file gives them) or ``"huber"``
+#: (GTSAM's Huber M-estimator at ``HUBER_K`` standard deviations, against
+#: wrongly associated sightings).
 SETTINGS = {
     "relinearize_threshold": 0.1,
     "relinearize_skip": 10,
     "batch_refinement": True,
+    "sighting_kernel": None,
     "prior_sigma": 1e-6,
     "version": 3,
 }
+
+#: Huber threshold in standard deviations (the usual 95 %-efficiency value).
+HUBER_K = 1.345
+
+
+def solver_settings(overrides=None) -> dict:
+    """``SETTINGS`` with ``overrides`` applied; a one-line ValueError names a bad key or value."""
+    overrides = dict(overrides or {})
+    tunable = sorted(set(SETTINGS) - {"version"})
+    unknown = sorted(set(overrides) - set(tunable))
+    if unknown:
+        raise ValueError(f"solver settings must be among {tunable}, got {unknown}")
+    settings = {**SETTINGS, **overrides}
+    threshold, skip = settings["relinearize_threshold"], settings["relinearize_skip"]
+    if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not 0 < threshold < np.inf:
+        raise ValueError(f"relinearize_threshold must be a positive number, got {threshold!r}")
+    if isinstance(skip, bool) or not isinstance(skip, (int, np.integer)) or skip < 1:
+        raise ValueError(f"relinearize_skip must be an integer >= 1, got {skip!r}")
+    if not isinstance(settings["batch_refinement"], bool):
+        raise ValueError(f"batch_refinement must be True or False, got {settings['batch_refinement']!r}")
+    if settings["sighting_kernel"] not in (None, "huber"):
+        raise ValueError(f"sighting_kernel must be None or 'huber', got {settings['sighting_kernel']!r}")
+    prior = settings["prior_sigma"]
+    if isinstance(prior, bool) or not isinstance(prior, (int, float)) or not 0 < prior < np.inf:
+        raise ValueError(f"prior_sigma must be a positive number, got {prior!r}")
+    # Plain Python numbers: the settings go into the cache key as JSON.
+    return {**settings, "relinearize_threshold": float(threshold), "relinearize_skip": int(skip),
+            "prior_sigma": float(prior)}
 
 
 def cache_dir() -> Path:
@@ -41,14 +73,16 @@ def cache_dir() -> Path:
     return Path(root) if root else Path.home() / ".cache" / "mapmerge" / "slam"
 
 
-def _cache_key(path: Path, start: int, stop: int) -> str:
+def _cache_key(path: Path, start: int, stop: int, settings: dict) -> str:
     digest = hashlib.sha256(path.read_bytes())
-    digest.update(json.dumps({"start": start, "stop": stop, **SETTINGS}, sort_keys=True).encode())
+    digest.update(json.dumps({"start": start, "stop": stop, **settings}, sort_keys=True).encode())
     return digest.hexdigest()[:24]
 
 
-def agent_map(log, start: int, stop: int, use_cache: bool = True):
+def agent_map(log, start: int, stop: int, use_cache: bool = True, settings=None):
     """Trees, their estimates and joint covariance for poses ``start..stop-1``.
+
+    ``settings``: overrides of ``SETTINGS`` (``solver_settings`` checks them).
 
     Returns
     -------
@@ -60,12 +94,13 @@ def agent_map(log, start: int, stop: int, use_cache: bool = True):
         Joint covariance of the trees' coordinates (x_0, y_0, x_1, ...),
         the first pose held fixed.
     """
+    settings = solver_settings(settings)
     path = Path(log.path)
-    cached = cache_dir() / f"{_cache_key(path, start, stop)}.npz"
+    cached = cache_dir() / f"{_cache_key(path, start, stop, settings)}.npz"
     if use_cache and cached.is_file():
         with np.load(cached) as data:
             return data["ids"], data["points"], data["joint"]
-    ids, points, joint = _solve(log, start, stop)
+    ids, points, joint = _solve(log, start, stop, settings)
     if use_cache:
         cached.parent.mkdir(parents=True, exist_ok=True)
         tmp = cached.with_name(f".{cached.name}.{os.getpid()}.tmp.npz")
@@ -74,7 +109,7 @@ def agent_map(log, start: int, stop: int, use_cache: bool = True):
     return ids, points, joint
 
 
-def _solve(log, start: int, stop: int):
+def _solve(log, start: int, stop: int, settings: dict):
     try:
         import gtsam
     except ImportError as exc:
@@ -83,6 +118,7 @@ def _solve(log, start: int, stop: int):
     pose_keys = [int(k) for k in log.pose_ids[start:stop]]
     step = {key: k for k, key in enumerate(pose_keys)}
     tree_of = {int(gtsam.Symbol("l", int(f)).key()): k for k, f in enumerate(log.tree_file_ids)}
+    kernel = gtsam.noiseModel.mEstimator.Huber.Create(HUBER_K) if settings["sighting_kernel"] == "huber" else None
     # Factors in time order: odometry into pose k, then the sightings taken at pose k.
     odometry, sightings = {}, {k: [] for k in range(len(pose_keys))}
     for i in range(graph.size()):
@@ -92,11 +128,15 @@ def _solve(log, start: int, stop: int):
             if keys[0] in step and keys[1] in step:
                 odometry[step[keys[1]]] = factor
         elif keys[0] in step:
+            if kernel is not None:
+                m = factor.measured()
+                factor = gtsam.BearingRangeFactor2D(keys[0], keys[1], m.bearing(), m.range(),
+                                                    gtsam.noiseModel.Robust.Create(kernel, factor.noiseModel()))
             sightings[step[keys[0]]].append(factor)
 
     params = gtsam.ISAM2Params()
-    params.setRelinearizeThreshold(SETTINGS["relinearize_threshold"])
-    params.relinearizeSkip = SETTINGS["relinearize_skip"]
+    params.setRelinearizeThreshold(settings["relinearize_threshold"])
+    params.relinearizeSkip = settings["relinearize_skip"]
     isam = gtsam.ISAM2(params)
     full = gtsam.NonlinearFactorGraph()
     placed: set[int] = set()
@@ -105,7 +145,7 @@ def _solve(log, start: int, stop: int):
         new, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         if k == 0:
             new.add(gtsam.PriorFactorPose2(key, gtsam.Pose2(),
-                                           gtsam.noiseModel.Isotropic.Sigma(3, SETTINGS["prior_sigma"])))
+                                           gtsam.noiseModel.Isotropic.Sigma(3, settings["prior_sigma"])))
             guess = gtsam.Pose2()
         else:
             factor = odometry[k]
@@ -125,7 +165,7 @@ def _solve(log, start: int, stop: int):
         previous = isam.calculateEstimatePose2(key)
     estimate = isam.calculateEstimate()
     solution = estimate
-    if SETTINGS["batch_refinement"]:
+    if settings["batch_refinement"]:
         refined = gtsam.LevenbergMarquardtOptimizer(full, estimate).optimize()
         if full.error(refined) < full.error(estimate):
             solution = refined

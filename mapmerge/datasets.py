@@ -344,7 +344,7 @@ def victoria_park(cut: int = DEFAULT_CUT, source: str = "reference", path=None, 
 GAUGES = ("shape", "first_pose")
 
 
-def slam_map(start: int = 0, stop: int | None = None, path=None, gauge: str = "shape"):
+def slam_map(start: int = 0, stop: int | None = None, path=None, gauge: str = "shape", solver=None):
     """One agent's own SLAM map of poses ``start .. stop-1`` (all by default), solved with GTSAM's iSAM2.
 
     The solver of ``victoria_park(..., source="slam")`` (optional extra
@@ -362,6 +362,13 @@ def slam_map(start: int = 0, stop: int | None = None, path=None, gauge: str = "s
         map's rigid motion removed (``rigid_free_covariance``). Merging
         estimates that rigid motion, so only the shape error is left to
         gate associations and weight the fusion.
+    solver : dict, optional
+        Solver settings other than the defaults, for checking that a map's
+        error is the data's and not the solver's: ``relinearize_threshold``
+        (default 0.1), ``relinearize_skip`` (10; 1 relinearises at every
+        pose), ``batch_refinement`` (True), ``sighting_kernel`` (None, or
+        ``"huber"`` for a Huber M-estimator on the tree sightings) and
+        ``prior_sigma`` (1e-6, the first pose's anchor).
 
     Returns
     -------
@@ -382,7 +389,7 @@ def slam_map(start: int = 0, stop: int | None = None, path=None, gauge: str = "s
         raise ValueError(f"need 0 <= start < stop <= {len(log.pose_ids)}, got start={start}, stop={stop}")
     if not np.any((log.obs_pose >= start) & (log.obs_pose < stop)):
         raise ValueError(f"poses {start}..{stop - 1} sight no tree: choose a longer range of poses")
-    ids, points, joint = agent_map(log, start, stop)
+    ids, points, joint = agent_map(log, start, stop, settings=solver)
     if gauge == "shape":
         joint = rigid_free_covariance(points, joint)
     m = len(ids)

@@ -124,9 +124,43 @@ def test_slam_cache_hits_and_is_invalidated_by_the_settings(tmp_path, monkeypatc
     again = slam.agent_map(log, 6200, len(log.pose_ids))  # a hit: not solved again
     for a, b in zip(first, again):
         np.testing.assert_array_equal(a, b)
+    with pytest.raises(AssertionError, match="solved again"):
+        slam.agent_map(log, 6200, len(log.pose_ids), settings={"relinearize_skip": 1})
     monkeypatch.setitem(slam.SETTINGS, "relinearize_skip", 1)
     with pytest.raises(AssertionError, match="solved again"):
         slam.agent_map(log, 6200, len(log.pose_ids))
+
+
+@pytest.mark.parametrize("settings, message", [
+    ({"relinearise_skip": 1}, "solver settings must be among"),
+    ({"version": 4}, "solver settings must be among"),
+    ({"relinearize_skip": 0}, "relinearize_skip must be an integer >= 1"),
+    ({"relinearize_skip": 2.5}, "relinearize_skip must be an integer >= 1"),
+    ({"relinearize_threshold": -0.1}, "relinearize_threshold must be a positive number"),
+    ({"batch_refinement": "yes"}, "batch_refinement must be True or False"),
+    ({"sighting_kernel": "cauchy"}, "sighting_kernel must be None or 'huber'"),
+    ({"prior_sigma": float("nan")}, "prior_sigma must be a positive number"),
+])
+def test_slam_map_rejects_bad_solver_settings(settings, message):
+    from mapmerge.datasets import slam_map
+
+    with pytest.raises(ValueError, match=message):
+        slam_map(6200, solver=settings)
+
+
+def test_slam_map_error_is_the_datas_not_the_solvers(tmp_path, monkeypatch):
+    """Agent q at cut 6200 is 5.9 m off the reference map; a Huber kernel on the sightings does not fix it."""
+    pytest.importorskip("gtsam")
+    from mapmerge.datasets import slam_map
+
+    monkeypatch.setenv("MAPMERGE_CACHE", str(tmp_path))
+    log = load_log()
+    errors = []
+    for solver in (None, {"sighting_kernel": "huber"}):
+        ids, points, _ = slam_map(6200, solver=solver)
+        errors.append(fit_error(points, log.trees[ids])["rmse"])
+    assert len(list(tmp_path.glob("*.npz"))) == 2  # one cache entry per setting
+    assert errors[0] > 5.0 and abs(errors[1] - errors[0]) < 0.1
 
 
 def test_slam_maps_of_cut_1500_merge_with_consensus():
