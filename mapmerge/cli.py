@@ -1,6 +1,7 @@
 """The ``mapmerge`` command: merge two landmark map files.
 
     mapmerge merge A.csv B.csv --sigma 0.02 -o merged.csv [--plot merged.png] [--json]
+    mapmerge merge A.csv B.csv -o merged.csv   # both files give covariances: σ pooled from them
     python -m mapmerge merge ...
 
 Reads two maps (``mapmerge.mapfiles``), runs ``merge_maps`` (method
@@ -19,7 +20,7 @@ import numpy as np
 
 from ._validation import check_points
 from .mapfiles import MapFileError, read_map, write_map
-from .merging import DEFAULT_TAU, METHODS, merge_maps
+from .merging import DEFAULT_TAU, METHODS, merge_maps, pooled_sigma
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -31,8 +32,9 @@ def _parser() -> argparse.ArgumentParser:
                                        "optional covariance sxx, sxy, syy or sigma.")
     merge.add_argument("map_a", help="map p (CSV/TSV)")
     merge.add_argument("map_b", help="map q (CSV/TSV)")
-    merge.add_argument("--sigma", type=float, required=True,
-                       help="per-coordinate standard deviation of a landmark, in map units")
+    merge.add_argument("--sigma", type=float, default=None,
+                       help="per-coordinate standard deviation of a landmark, in map units; needed unless both "
+                            "maps give covariances, whose RMS per-coordinate standard deviation is then used")
     merge.add_argument("--method", default="consensus", choices=list(METHODS), metavar="METHOD",
                        help="matcher, default consensus: " + "; ".join(f"{m.name}: {m.summary}"
                                                                    for m in METHODS.values()))
@@ -63,12 +65,14 @@ def main(argv=None) -> int:
             check_points(landmarks.points, f"{landmarks.source}:")
         if (map_p.cov is None) != (map_q.cov is None):
             raise ValueError("give covariances (sxx, sxy, syy or sigma) in both maps or in neither")
+        if args.sigma is None and map_p.cov is None:
+            raise ValueError("--sigma is needed when the maps give no covariances (sxx, sxy, syy or sigma columns)")
         res = merge_maps(map_p.points, map_q.points, args.sigma, tau=args.tau, method=args.method,
                          cov_p=map_p.cov, cov_q=map_q.cov, rng=args.seed)
     except (MapFileError, ValueError, ImportError) as exc:
         print(f"mapmerge: error: {exc}", file=sys.stderr)
         return 2
-    info = summary(res)
+    info = {**summary(res), "sigma": float(args.sigma if args.sigma is not None else pooled_sigma(map_p.cov, map_q.cov))}
     if not res.matched:
         info["output"] = None
         print(json.dumps(info) if args.json else
@@ -87,6 +91,8 @@ def main(argv=None) -> int:
         print(f"matched ({res.method}): theta = {deg:.4f} ± {deg_std:.4f} deg, "
               f"t = ({info['t'][0]:.4f} ± {info['t_std'][0]:.4f}, {info['t'][1]:.4f} ± {info['t_std'][1]:.4f}) "
               f"[q ≈ R(theta) p + t]; {info['pairs']} landmark pairs, {info['conflicts']} conflicts")
+        if args.sigma is None:
+            print(f"sigma = {info['sigma']:.6g} (RMS of the maps' own standard deviations)")
         print(f"combined map: {len(res.merged)} landmarks -> {info['output']}"
               + (f"; plot -> {info['plot']}" if args.plot else ""))
     return 0

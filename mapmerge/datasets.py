@@ -41,6 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from .alignment import align_pairs, rotate, rotation, wrap_angle
+from .merging import pooled_sigma
 
 #: Where the bundled copy of the data lives.
 DATA_DIR = Path(__file__).resolve().parent / "data" / "victoria_park"
@@ -322,8 +323,7 @@ def victoria_park(cut: int = DEFAULT_CUT, source: str = "reference", path=None, 
     _, ip, iq = np.intersect1d(ids_p, ids_q, return_indices=True)
     fit = align_pairs(p[ip], q[iq], 1.0) if ip.size >= 2 else None
     physical = physical_trees(log.trees)
-    sigma = float(np.sqrt(np.mean(np.concatenate([np.trace(cov_p, axis1=1, axis2=2),
-                                                   np.trace(cov_q, axis1=1, axis2=2)]) / 2)))
+    sigma = pooled_sigma(cov_p, cov_q)
     pair = AgentPair(
         p=p, q=q, ids_p=physical[ids_p], ids_q=physical[ids_q], log_ids_p=ids_p, log_ids_q=ids_q,
         truth=_to_frame(log.trees, first_p),

@@ -172,7 +172,24 @@ def merge_batch(P, Q, sigma, tau=DEFAULT_TAU, method="consensus", objective="lr"
     return _merge(P, Q, sigma, tau, method, objective, cov_p, cov_q, rng)
 
 
-def merge_maps(P, Q, sigma, tau=DEFAULT_TAU, method="consensus", objective="lr", cov_p=None, cov_q=None,
+def pooled_sigma(cov_p, cov_q) -> float:
+    """One σ from per-landmark covariances: the RMS per-coordinate standard deviation over both maps.
+
+    Parameters
+    ----------
+    cov_p, cov_q : (n, 2, 2) ndarray
+        Valid covariances (as ``merge_maps`` checks them).
+
+    Returns
+    -------
+    float
+        √(mean over all landmarks of tr(Σ) / 2).
+    """
+    return float(np.sqrt(np.mean(np.concatenate([np.trace(cov_p, axis1=1, axis2=2),
+                                                 np.trace(cov_q, axis1=1, axis2=2)]) / 2)))
+
+
+def merge_maps(P, Q, sigma=None, tau=DEFAULT_TAU, method="consensus", objective="lr", cov_p=None, cov_q=None,
                rng=None) -> MergeResult:
     """Match two landmark maps and build their maximum-likelihood combination.
 
@@ -181,9 +198,12 @@ def merge_maps(P, Q, sigma, tau=DEFAULT_TAU, method="consensus", objective="lr",
     P, Q : (n, 2) array_like
         Landmark estimates of map p and map q, each in its own frame; n >= 3,
         finite, distinct, not all collinear.
-    sigma : float
+    sigma : float, optional
         Per-coordinate standard deviation of one landmark's position, in map
-        units (metres for metric maps), > 0. Measured on 100-landmark maps
+        units (metres for metric maps), > 0. May be left out when ``cov_p``
+        and ``cov_q`` are given: then it is their ``pooled_sigma``, the σ
+        of the stages that take one (the triangle statistic and its
+        threshold). Measured on 100-landmark maps
         (``python -m experiments.sigma``): ``consensus`` loses nothing when
         σ is overstated 2x, but at half the true σ its gates reject about a
         fifth of the true pairs; when unsure, overstate σ.
@@ -221,8 +241,12 @@ def merge_maps(P, Q, sigma, tau=DEFAULT_TAU, method="consensus", objective="lr",
     """
     P = check_points(P, "P")
     Q = check_points(Q, "Q")
-    sigma = check_sigma(sigma)
     cov_p, cov_q = check_covariances(cov_p, len(P), "cov_p"), check_covariances(cov_q, len(Q), "cov_q")
+    if sigma is None:
+        if cov_p is None or cov_q is None:
+            raise ValueError("sigma is needed unless cov_p and cov_q give every landmark's covariance")
+        sigma = pooled_sigma(cov_p, cov_q)
+    sigma = check_sigma(sigma)
     return _merge(P[None], Q[None], np.array([sigma]), tau, method, objective,
                   None if cov_p is None else cov_p[None], None if cov_q is None else cov_q[None], rng).result(0)
 

@@ -88,3 +88,34 @@ def test_python_dash_m_runs_the_same_command(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "mapmerge", "merge", str(a), str(b), "--sigma", "0.02", "-o", str(out)],
                           capture_output=True, text=True)
     assert proc.returncode == 0 and "matched (consensus)" in proc.stdout and out.exists()
+
+
+def test_sigma_comes_from_the_maps_covariances_when_left_out(tmp_path, capsys):
+    a, b, th = _maps(tmp_path)
+    sd_p, sd_q = 0.015, 0.025  # per-landmark standard deviations the files state
+    for path, sd, sep in ((a, sd_p, ","), (b, sd_q, "\t")):
+        table = pd.read_csv(path, sep=sep)
+        table["sigma"] = sd
+        table.to_csv(path, index=False, sep=sep)
+    out = tmp_path / "merged.csv"
+    assert main(["merge", str(a), str(b), "-o", str(out), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["sigma"] == pytest.approx(np.sqrt((sd_p**2 + sd_q**2) / 2))  # 30 landmarks each
+    assert info["matched"] and info["pairs"] == 20 and abs(info["theta"] - th) < 0.01
+    # Without covariances the command needs --sigma, and says so.
+    plain = tmp_path / "plain"
+    plain.mkdir()
+    a2, b2, _ = _maps(plain)
+    assert main(["merge", str(a2), str(b2), "-o", str(out)]) == 2
+    assert "--sigma is needed when the maps give no covariances" in capsys.readouterr().err
+
+
+def test_merge_maps_pools_sigma_from_covariances_and_needs_one_or_the_other():
+    sc = mm.simulate.make_pair(40, 0.75, 30, rng=5)
+    cov_p, cov_q = np.full(40, sc.sigma**2), np.full(40, 4 * sc.sigma**2)
+    res = mm.merge_maps(sc.p, sc.q, cov_p=cov_p, cov_q=cov_q)
+    same = mm.merge_maps(sc.p, sc.q, np.sqrt(2.5) * sc.sigma, cov_p=cov_p, cov_q=cov_q)
+    assert res.matched and np.array_equal(res.pairs, same.pairs)
+    assert res.theta == pytest.approx(same.theta, abs=1e-12)
+    with pytest.raises(ValueError, match="sigma is needed unless cov_p and cov_q"):
+        mm.merge_maps(sc.p, sc.q, cov_p=cov_p)
