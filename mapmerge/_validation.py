@@ -24,16 +24,26 @@ def check_points(points, name: str, min_points: int = 3, geometry: bool = True) 
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"{name} contains NaN or inf; all coordinates must be finite")
     if geometry:
-        order = np.lexsort((arr[:, 1], arr[:, 0]))
-        if np.any(np.all(arr[order[1:]] == arr[order[:-1]], axis=1)):
-            raise ValueError(f"{name} contains duplicate points; landmarks must be distinct")
-        # All on one line: every point's offset from the first is parallel to
-        # the longest such offset (to 1e-12 of the squared extent).
-        d = arr - arr[0]
-        far = d[np.argmax(d[:, 0] ** 2 + d[:, 1] ** 2)]
-        if np.max(np.abs(d[:, 0] * far[1] - d[:, 1] * far[0])) <= 1e-12 * (far[0] ** 2 + far[1] ** 2):
-            raise ValueError(f"{name} points are all collinear; a triangulation needs 2-D spread")
+        check_geometry(arr[None], name)
     return arr
+
+
+def check_geometry(maps: np.ndarray, name: str, indexed: bool = False) -> None:
+    """Raise a one-line ValueError when one of B finite (B, n, 2) maps has duplicate points or
+    all its points on one line, naming it ``name`` (``name[b]`` when ``indexed``)."""
+    order = np.lexsort((maps[..., 1], maps[..., 0]), axis=-1)
+    ordered = np.take_along_axis(maps, order[..., None], axis=1)
+    duplicate = np.any(np.all(ordered[:, 1:] == ordered[:, :-1], axis=2), axis=1)
+    # All on one line: every point's offset from the first is parallel to
+    # the longest such offset (to 1e-12 of the squared extent).
+    d = maps - maps[:, :1]
+    far = d[np.arange(len(maps)), np.argmax(d[..., 0] ** 2 + d[..., 1] ** 2, axis=1)][:, None]
+    cross = np.abs(d[..., 0] * far[..., 1] - d[..., 1] * far[..., 0])
+    collinear = np.max(cross, axis=1) <= 1e-12 * (far[:, 0, 0] ** 2 + far[:, 0, 1] ** 2)
+    for bad, message in ((duplicate, "contains duplicate points; landmarks must be distinct"),
+                         (collinear, "points are all collinear; a triangulation needs 2-D spread")):
+        if bad.any():
+            raise ValueError(f"{name}[{int(np.argmax(bad))}] {message}" if indexed else f"{name} {message}")
 
 
 def check_sigma(sigma, name: str = "sigma") -> float:

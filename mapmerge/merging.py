@@ -23,7 +23,7 @@ from typing import Callable
 import numpy as np
 
 from . import consensus, search
-from ._validation import check_covariances, check_points, check_rng, check_sigma
+from ._validation import check_covariances, check_geometry, check_points, check_rng, check_sigma
 from .baselines import astroalign as astroalign_baseline
 from .baselines import groth as groth_baseline
 from .matching import OBJECTIVES, TriangleMatch, match_triangles, resolve_correspondences, resolve_log_tau
@@ -147,8 +147,8 @@ def merge_batch(P, Q, sigma, tau=DEFAULT_TAU, method="consensus", objective="lr"
     Parameters
     ----------
     P, Q : (B, n_p, 2), (B, n_q, 2) ndarray
-        Valid maps (each as ``merge_maps`` checks them; here only shapes and
-        finiteness are checked).
+        The maps, each as ``merge_maps`` takes them (n >= 3 finite, distinct,
+        not all collinear points).
     sigma : float or (B,) array_like
     tau, method, objective, rng
         As for ``merge_maps`` (one threshold for every pair).
@@ -273,4 +273,5 @@ def _check_batch(maps, name: str) -> np.ndarray:
         raise ValueError(f"{name} must have shape (B, n, 2) with n >= 3, got {arr.shape}")
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"{name} contains NaN or inf; all coordinates must be finite")
+    check_geometry(arr, name, indexed=True)
     return arr

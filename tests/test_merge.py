@@ -131,3 +131,25 @@ def test_merge_maps_rejects_bad_input(rng, kwargs, match):
     args.update(kwargs)
     with pytest.raises(ValueError, match=match):
         mm.merge_maps(**args)
+
+
+def _spoil(maps, b, how):
+    maps = maps.copy()
+    if how == "duplicate":
+        maps[b, 3] = maps[b, 4]
+    else:
+        maps[b, :, 1] = 2 * maps[b, :, 0] + 1
+    return maps
+
+
+@pytest.mark.parametrize("which, b, how, match", [
+    ("P", 1, "duplicate", r"P\[1\] contains duplicate points"),
+    ("Q", 2, "collinear", r"Q\[2\] points are all collinear"),
+    ("P", 0, "collinear", r"P\[0\] points are all collinear"),
+])
+def test_merge_batch_names_the_map_with_bad_geometry(which, b, how, match):
+    batch = mm.simulate.make_pairs(10, 0.75, 20, [0, 1, 2])
+    P, Q = batch.p, batch.q
+    P, Q = (_spoil(P, b, how), Q) if which == "P" else (P, _spoil(Q, b, how))
+    with pytest.raises(ValueError, match=match):  # not Qhull's error, nor a silent merge
+        mm.merge_batch(P, Q, batch.sigma)
