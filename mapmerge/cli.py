@@ -67,12 +67,13 @@ def main(argv=None) -> int:
             raise ValueError("give covariances (sxx, sxy, syy or sigma) in both maps or in neither")
         if args.sigma is None and map_p.cov is None:
             raise ValueError("--sigma is needed when the maps give no covariances (sxx, sxy, syy or sigma columns)")
-        res = merge_maps(map_p.points, map_q.points, args.sigma, tau=args.tau, method=args.method,
+        sigma = args.sigma if args.sigma is not None else pooled_sigma(map_p.cov, map_q.cov)
+        res = merge_maps(map_p.points, map_q.points, sigma, tau=args.tau, method=args.method,
                          cov_p=map_p.cov, cov_q=map_q.cov, rng=args.seed)
     except (MapFileError, ValueError, ImportError) as exc:
         print(f"mapmerge: error: {exc}", file=sys.stderr)
         return 2
-    info = {**summary(res), "sigma": float(args.sigma if args.sigma is not None else pooled_sigma(map_p.cov, map_q.cov))}
+    info = {**summary(res), "sigma": float(sigma)}
     if not res.matched:
         info["output"] = None
         print(json.dumps(info) if args.json else
