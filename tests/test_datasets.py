@@ -82,6 +82,27 @@ def test_slam_agent_maps_are_right_to_their_bound(tmp_path, monkeypatch, start, 
     assert np.trace(shape, axis1=1, axis2=2).sum() < 0.5 * np.trace(cov, axis1=1, axis2=2).sum()
 
 
+#: Each agent map's error (RMSE after the fit by tree id, m) at the six cuts, as solved with the default
+#: settings (results/victoria_park/solver_settings.md).
+SLAM_MAP_RMSE = {(1500, "p"): 0.579, (1500, "q"): 0.733, (2500, "p"): 0.552, (2500, "q"): 1.463,
+                 (3483, "p"): 0.526, (3483, "q"): 2.151, (4500, "p"): 0.567, (4500, "q"): 2.510,
+                 (5500, "p"): 1.596, (5500, "q"): 10.103, (6200, "p"): 4.124, (6200, "q"): 5.875}
+
+
+@pytest.mark.slow
+def test_every_slam_agent_map_is_solved_as_well_as_recorded(tmp_path, monkeypatch):
+    """All 12 agent maps, solved cold: no failed solve (<= 12 m) and none more than 5 % worse than recorded."""
+    pytest.importorskip("gtsam")
+    from mapmerge.datasets import slam_map
+
+    monkeypatch.setenv("MAPMERGE_CACHE", str(tmp_path))
+    log = load_log()
+    for (cut, agent), recorded in SLAM_MAP_RMSE.items():
+        ids, points, _ = slam_map(*((0, cut) if agent == "p" else (cut, None)))
+        rmse = fit_error(points, log.trees[ids])["rmse"]
+        assert rmse <= 12.0 and rmse <= 1.05 * recorded, (cut, agent, rmse)
+
+
 def test_rigid_free_covariance_removes_exactly_a_rigid_motion(rng):
     from mapmerge.datasets import rigid_free_covariance
 
