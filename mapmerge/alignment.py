@@ -265,14 +265,72 @@ def align_pairs(P: np.ndarray, Q: np.ndarray, sigma: float) -> Alignment:
 
 
 def reject_outliers(P, Q, pairs, sigma, gate_p: float = 1e-3):
-    """Iterative fit: drop the worst pair outside the χ²₂ gate and refit (Groth's rule)."""
+    """Iterative fit: drop the worst pair outside the χ²₂ gate and refit (Groth's rule).
+
+    One map pair's ``reject_outliers_batch``: returns the pairs kept.
+    """
+    keep = reject_outliers_batch(P[None], Q[None], np.zeros(len(pairs), dtype=np.intp), pairs,
+                                 np.array([sigma], dtype=float), gate_p)
+    return pairs[keep]
+
+
+def reject_outliers_batch(P, Q, pair_trial, pairs, sigma, gate_p: float = 1e-3) -> np.ndarray:
+    """Groth's iterative rejection on B map pairs at once.
+
+    Per map pair: fit the n-point closed form to its pairs, standardise each
+    pair's residual by its variance (2σ² plus the fit's prediction variance,
+    ``prediction_var``), and while the worst lies outside the χ²₂ gate of
+    tail probability ``gate_p`` and three or more pairs remain, drop it
+    (the first of equal worst) and refit. Every map pair still rejecting
+    takes one round of the same vectorised step.
+
+    Parameters
+    ----------
+    P, Q : (B, n_p, 2), (B, n_q, 2) ndarray
+    pair_trial : (K,) int ndarray
+        Map pair of each correspondence.
+    pairs : (K, 2) int ndarray
+        Correspondences (p index, q index).
+    sigma : (B,) ndarray
+
+    Returns
+    -------
+    keep : (K,) bool ndarray
+    """
     gate = chdtri(2, gate_p)
-    while pairs.shape[0] >= 3:
-        al = align_pairs(P[pairs[:, 0]], Q[pairs[:, 1]], sigma)
-        var = 2 * sigma**2 + prediction_var(P[pairs[:, 0]], al)
-        resid = np.sum((Q[pairs[:, 1]] - rotate(al.theta, P[pairs[:, 0]]) - al.t) ** 2, axis=1) / var
-        worst = int(np.argmax(resid))
-        if resid[worst] <= gate:
-            break
-        pairs = np.delete(pairs, worst, axis=0)
-    return pairs
+    B = len(P)
+    a, b = P[pair_trial, pairs[:, 0]], Q[pair_trial, pairs[:, 1]]
+    keep = np.ones(len(pairs), dtype=bool)
+    rejecting = np.ones(B, dtype=bool)
+    while True:
+        rejecting &= np.bincount(pair_trial[keep], minlength=B) >= 3
+        idx = np.flatnonzero(keep & rejecting[pair_trial])
+        if not idx.size:
+            return keep
+        k, ak, bk = pair_trial[idx], a[idx], b[idx]
+        theta, t, _ = fit_transforms(k, ak, bk, B)
+        c, s = np.cos(theta), np.sin(theta)
+        mu = 0.5 * (ak + rotate(-theta[k], (bk - t[k])[:, None, :])[:, 0])
+        # (θ, t) information with µ profiled out (transform_covariance), per map pair:
+        # b = R J Σµ, and R J = [[-s, -c], [c, -s]].
+        sx, sy = np.bincount(k, mu[:, 0], B), np.bincount(k, mu[:, 1], B)
+        info = np.zeros((B, 3, 3))
+        info[:, 0, 0] = np.bincount(k, mu[:, 0] ** 2 + mu[:, 1] ** 2, B)
+        info[:, 0, 1] = info[:, 1, 0] = -s * sx - c * sy
+        info[:, 0, 2] = info[:, 2, 0] = c * sx - s * sy
+        info[:, 1, 1] = info[:, 2, 2] = np.bincount(k, minlength=B)
+        info[~rejecting] = np.eye(3)  # map pairs done: any invertible matrix, unused
+        cov = 2.0 * sigma[:, None, None] ** 2 * np.linalg.inv(info)
+        # prediction_var of each p point, then its standardised residual.
+        ck, sk, cv = c[k], s[k], cov[k]
+        rjx = np.stack([-sk * ak[:, 0] - ck * ak[:, 1], ck * ak[:, 0] - sk * ak[:, 1]], axis=1)
+        pred = 0.5 * ((ak**2).sum(axis=1) * cv[:, 0, 0] + 2 * (rjx[:, 0] * cv[:, 0, 1] + rjx[:, 1] * cv[:, 0, 2])
+                      + cv[:, 1, 1] + cv[:, 2, 2])
+        resid = np.sum((bk - rotate(theta[k], ak[:, None, :])[:, 0] - t[k]) ** 2, axis=1)
+        resid /= 2 * sigma[k] ** 2 + pred
+        # The worst of each map pair (the first of equal worst): rows sorted by map pair, then residual down.
+        order = np.lexsort((-resid, k))
+        first = order[np.r_[True, k[order][1:] != k[order][:-1]]]
+        out = resid[first] > gate
+        keep[idx[first[out]]] = False
+        rejecting[k[first[~out]]] = False

@@ -182,7 +182,7 @@ def _refit_groups(vp, vq, P, Q, scores, sigma, pool, inliers, gate):
     n_p, n_q = len(P), len(Q)
     h, at = np.nonzero(inliers)
     members = pool[at]
-    uniq, keep = resolve_correspondences(vp[members] + n_p * h[:, None], vq[members] + n_q * h[:, None],
+    uniq, keep, _ = resolve_correspondences(vp[members] + n_p * h[:, None], vq[members] + n_q * h[:, None],
                                          scores[members])
     (kp, kq), owner = uniq[keep].T, uniq[keep, 0] // n_p  # owner: the hypothesis of each correspondence
     theta, t, cost = fit_transforms(owner, P[kp % n_p], Q[kq % n_q], len(inliers))

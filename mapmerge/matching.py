@@ -254,7 +254,7 @@ def correspondences(vertices_p, vertices_q, log_lr):
     n_conflicts : int
         Distinct candidate correspondences dropped as conflicting.
     """
-    uniq, keep = resolve_correspondences(vertices_p, vertices_q, log_lr)
+    uniq, keep, _ = resolve_correspondences(vertices_p, vertices_q, log_lr)
     return uniq[keep].astype(np.intp), int(keep.size - np.count_nonzero(keep))
 
 
@@ -271,9 +271,11 @@ def resolve_correspondences(vertices_p, vertices_q, log_lr):
         Distinct candidate correspondences (p, q), sorted by (p, q).
     keep : (U,) bool ndarray
         The one-to-one survivors.
+    votes : (U,) int64 ndarray
+        How many declared pairs' vertices gave each candidate.
     """
     if len(vertices_p) == 0:
-        return np.empty((0, 2), dtype=np.int64), np.empty(0, dtype=bool)
+        return np.empty((0, 2), dtype=np.int64), np.empty(0, dtype=bool), np.empty(0, dtype=np.int64)
     vp, vq = np.ravel(vertices_p).astype(np.int64), np.ravel(vertices_q).astype(np.int64)
     n = int(vq.max()) + 1
     keys = vp * n + vq
@@ -285,9 +287,10 @@ def resolve_correspondences(vertices_p, vertices_q, log_lr):
     # Only candidates sharing a landmark with another can lose; rank those.
     contested = np.flatnonzero((np.bincount(uniq[:, 0])[uniq[:, 0]] > 1) | (np.bincount(uniq[:, 1])[uniq[:, 1]] > 1))
     keep = np.ones(len(uniq), dtype=bool)
+    all_votes = np.diff(np.r_[start, keys.size])
     if contested.size == 0:
-        return uniq, keep
-    votes = np.diff(np.r_[start, keys.size])[contested]
+        return uniq, keep, all_votes
+    votes = all_votes[contested]
     best = np.maximum.reduceat(np.repeat(log_lr, 3)[order], start)[contested]
     cp, cq = uniq[contested, 0], uniq[contested, 1]
     rank = np.empty(contested.size, dtype=np.int64)
@@ -305,7 +308,7 @@ def resolve_correspondences(vertices_p, vertices_q, log_lr):
         taken_p[cp[first]] = taken_q[cq[first]] = True
         live &= ~taken_p[cp] & ~taken_q[cq]
     keep[contested] = won
-    return uniq, keep
+    return uniq, keep, all_votes
 
 
 def _first_rank(landmark: np.ndarray, rank: np.ndarray, live: np.ndarray) -> np.ndarray:

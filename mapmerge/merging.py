@@ -129,7 +129,7 @@ def _merge_at(P, Q, sigma, match, log_tau, method, cov_p, cov_q, rng, search_mem
     # Landmark indices offset by pair so that one call resolves every pair's conflicts.
     n = max(P.shape[1], Q.shape[1])
     tb = match.trial[declared][:, None] * n
-    uniq, keep = resolve_correspondences(tb + match.p_vertices[declared], tb + match.q_vertices[declared],
+    uniq, keep, _ = resolve_correspondences(tb + match.p_vertices[declared], tb + match.q_vertices[declared],
                                          match.log_lr[declared])
     pairs = uniq[keep]
     return build_batch(

@@ -37,3 +37,19 @@ def test_astroalign_baseline_is_reproducible():
     c, d = (mm.merge_maps(sc.p, sc.q, sc.sigma, method="astroalign", rng=7) for _ in range(2))
     assert np.array_equal(c.pairs, d.pairs) and len(c.pairs) > 10
     assert astroalign._np is np
+
+
+def test_groth_on_a_batch_equals_each_map_pair_alone():
+    batch = mm.simulate.make_pairs(20, 0.75, 25, list(range(12)))
+    merged = mm.merge_batch(batch.p, batch.q, batch.sigma, method="groth")
+    found = 0
+    for b in range(12):
+        alone = mm.merge_maps(batch.p[b], batch.q[b], batch.sigma[b], method="groth")
+        res = merged.result(b)
+        np.testing.assert_array_equal(res.pairs, alone.pairs)
+        np.testing.assert_array_equal(res.triangle_pairs, alone.triangle_pairs)
+        np.testing.assert_array_equal(res.declared, alone.declared)
+        np.testing.assert_array_equal(res.triangle_log_lr, alone.triangle_log_lr)
+        assert res.n_conflicts == alone.n_conflicts and res.matched == alone.matched
+        found += res.matched
+    assert found >= 6

@@ -234,3 +234,45 @@ def test_cyclic_method_detects_more_than_paper():
         gain += _counts(sc, mm.merge_maps(sc.p, sc.q, sc.sigma, method="cyclic"))["tp"]
         gain -= _counts(sc, mm.merge_maps(sc.p, sc.q, sc.sigma, method="paper"))["tp"]
     assert gain > 0
+
+
+def _reject_one_at_a_time(P, Q, pairs, sigma, gate_p):
+    """Groth's rule written out for one map pair: refit, drop the worst outside the gate, repeat."""
+    from scipy.special import chdtri
+
+    from mapmerge.alignment import align_pairs, prediction_var, rotate
+
+    while len(pairs) >= 3:
+        al = align_pairs(P[pairs[:, 0]], Q[pairs[:, 1]], sigma)
+        var = 2 * sigma**2 + prediction_var(P[pairs[:, 0]], al)
+        resid = np.sum((Q[pairs[:, 1]] - rotate(al.theta, P[pairs[:, 0]]) - al.t) ** 2, axis=1) / var
+        if resid.max() <= chdtri(2, gate_p):
+            break
+        pairs = np.delete(pairs, np.argmax(resid), axis=0)
+    return pairs
+
+
+def test_outlier_rejection_of_many_map_pairs_at_once_follows_the_rule_per_pair(rng):
+    from mapmerge.alignment import reject_outliers, reject_outliers_batch
+
+    B, n = 60, 25
+    P = rng.uniform(0, 10, (B, n, 2))
+    sigma = 10 ** rng.uniform(-2.5, -0.5, B)
+    theta, t = rng.uniform(-np.pi, np.pi, B), rng.normal(0, 5, (B, 2))
+    Q = mm.alignment.rotate(theta, P) + t[:, None] + sigma[:, None, None] * rng.standard_normal((B, n, 2))
+    parts = []
+    for b in range(B):
+        m = rng.integers(0, n + 1)  # some map pairs with fewer than 3 pairs: nothing to reject
+        p_idx = rng.permutation(n)[:m]
+        q_idx = np.where(rng.random(m) < rng.uniform(0, 0.6), rng.integers(0, n, m), p_idx)  # wrong partners
+        parts.append(np.stack([p_idx, q_idx], axis=1).reshape(-1, 2))
+    trial = np.repeat(np.arange(B), [len(x) for x in parts])
+    pairs = np.concatenate(parts)
+    keep = reject_outliers_batch(P, Q, trial, pairs, sigma, 1e-3)
+    dropped = 0
+    for b in range(B):
+        expected = _reject_one_at_a_time(P[b], Q[b], parts[b], sigma[b], 1e-3)
+        np.testing.assert_array_equal(pairs[keep & (trial == b)], expected)
+        np.testing.assert_array_equal(reject_outliers(P[b], Q[b], parts[b], sigma[b]), expected)
+        dropped += len(parts[b]) - len(expected)
+    assert dropped > 50  # the rule had work to do

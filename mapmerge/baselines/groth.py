@@ -9,16 +9,18 @@ match votes for its three vertex correspondences, the correspondences with
 at least two votes are accepted one-to-one in decreasing vote order, and the
 transform is fitted with the n-point closed form, dropping the worst
 correspondence outside a χ²₂ gate and refitting until none is left outside
-(Groth's iterative rejection).
+(Groth's iterative rejection). Every step runs on a whole batch of map
+pairs at once, each pair's result the same as alone.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from ..alignment import paired_transforms, reject_outliers
-from ..matching import correspondences
-from ..result import MergeBatch, build_from_parts
+from ..alignment import paired_transforms, reject_outliers_batch
+from ..matching import resolve_correspondences
+from ..result import MergeBatch, build_batch
+from ..statistic import BLOCK_PAIRS
 from ..triangles import TriangleBatch
 
 #: Groth's ε, the position tolerance of a vertex, in units of σ.
@@ -43,54 +45,79 @@ def _invariants(coords, eps):
     return R, C, tR2, tC2, sense
 
 
-def groth_pairs(P, Q, sigma, tri_p, tri_q):
-    """Groth's matching on one map pair.
+def groth_pairs(P, Q, sigma, tri_p: TriangleBatch, tri_q: TriangleBatch):
+    """Groth's matching on B map pairs at once.
 
     Returns
     -------
+    tri_trial : (M,) int ndarray
+        Map pair of each triangle pair, sorted.
     tri_pairs : (M, 2) int ndarray
-        Triangle pairs whose invariants agree.
+        Triangle pairs whose invariants agree (indices within each map).
     scores : (M,) ndarray
         Their GLRT log Λ (reported, not used).
     declared : (M,) bool ndarray
         Pairs all of whose vertex correspondences were accepted.
-    pairs : (K, 2) int ndarray
-        Accepted landmark correspondences.
-    n_conflicts : int
+    pair_trial, pairs : (K,), (K, 2) int ndarray
+        Accepted landmark correspondences, sorted by map pair.
+    n_conflicts : (B,) int ndarray
     """
+    B = len(P)
     eps = GROTH_EPS_SIGMAS * sigma
-    Rp, Cp, tRp, tCp, sp = _invariants(tri_p.coords, eps)
-    Rq, Cq, tRq, tCq, sq = _invariants(tri_q.coords, eps)
-    ok = (
-        ((Rp[:, None] - Rq[None]) ** 2 < tRp[:, None] + tRq[None])
-        & ((Cp[:, None] - Cq[None]) ** 2 < tCp[:, None] + tCq[None])
-        & (sp[:, None] == sq[None])
-        & (Rp[:, None] < GROTH_MAX_RATIO)
-        & (Rq[None] < GROTH_MAX_RATIO)
-    )
-    tri_pairs = np.argwhere(ok).astype(np.intp)
-    vp, vq = tri_p.vertices[tri_pairs[:, 0]], tri_q.vertices[tri_pairs[:, 1]]
-    _, _, cost = paired_transforms(P[vp], Q[vq])
-    pairs, n_conflicts = _vote(vp, vq)
-    pairs = reject_outliers(P, Q, pairs, sigma, GROTH_GATE_P)
-    to_q = np.full(P.shape[0], -1)
-    to_q[pairs[:, 0]] = pairs[:, 1]
-    return tri_pairs, -cost / (2 * sigma**2), np.all(to_q[vp] == vq, axis=1), pairs, n_conflicts
+    Rp, Cp, tRp, tCp, sp = _invariants(tri_p.coords(), eps[tri_p.trial])
+    Rq, Cq, tRq, tCq, sq = _invariants(tri_q.coords(), eps[tri_q.trial])
+    # Every p triangle against every q triangle of its own map pair, a block of map pairs at a time.
+    tp, tq = int(tri_p.count.max(initial=0)), int(tri_q.count.max(initial=0))
+    block = max(1, BLOCK_PAIRS // max(tp * tq, 1))
+    found = []
+    for a in range(0, B, block):
+        maps = np.arange(a, min(a + block, B))
+        rows, cols = _padded_rows(tri_p, maps, tp), _padded_rows(tri_q, maps, tq)
+        Rr, Cr, tRr, tCr, sr = (x[rows][:, :, None] for x in (Rp, Cp, tRp, tCp, sp))
+        Rc, Cc, tRc, tCc, sc = (x[cols][:, None, :] for x in (Rq, Cq, tRq, tCq, sq))
+        ok = (
+            (rows[:, :, None] >= 0) & (cols[:, None, :] >= 0)
+            & ((Rr - Rc) ** 2 < tRr + tRc) & ((Cr - Cc) ** 2 < tCr + tCc) & (sr == sc)
+            & (Rr < GROTH_MAX_RATIO) & (Rc < GROTH_MAX_RATIO)
+        )
+        k, i, j = np.nonzero(ok)
+        found.append((maps[k], i, j))
+    tri_trial, i, j = (np.concatenate(v).astype(np.intp) for v in zip(*found))
+    tri_pairs = np.stack([i, j], axis=1)
+    vp, vq = tri_p.vertices[tri_p.offsets[tri_trial] + i], tri_q.vertices[tri_q.offsets[tri_trial] + j]
+    # Fitted in blocks: the same sums per pair, in arrays that stay in cache.
+    cost = np.concatenate([np.empty(0)] + [
+        paired_transforms(P[tri_trial[a:a + BLOCK_PAIRS, None], vp[a:a + BLOCK_PAIRS]],
+                          Q[tri_trial[a:a + BLOCK_PAIRS, None], vq[a:a + BLOCK_PAIRS]])[2]
+        for a in range(0, len(vp), BLOCK_PAIRS)])
+    pair_trial, pairs, n_conflicts = _vote(tri_trial, vp, vq, max(P.shape[1], Q.shape[1]), B)
+    keep = reject_outliers_batch(P, Q, pair_trial, pairs, sigma, GROTH_GATE_P)
+    pair_trial, pairs = pair_trial[keep], pairs[keep]
+    to_q = np.full((B, P.shape[1]), -1)
+    to_q[pair_trial, pairs[:, 0]] = pairs[:, 1]
+    declared = np.all(to_q[tri_trial[:, None], vp] == vq, axis=1)
+    return tri_trial, tri_pairs, -cost / (2 * sigma[tri_trial] ** 2), declared, pair_trial, pairs, n_conflicts
 
 
-def _vote(vp, vq):
-    """One-to-one correspondences by decreasing votes, at least two votes each."""
-    pairs, conflicts = correspondences(vp, vq, np.ones(len(vp)))
-    if pairs.shape[0] == 0:
-        return pairs, conflicts
-    n = int(max(vp.max(), vq.max())) + 1
-    keys, votes = np.unique(vp.ravel() * n + vq.ravel(), return_counts=True)
-    v = votes[np.searchsorted(keys, pairs[:, 0] * n + pairs[:, 1])]
-    return pairs[v >= 2], conflicts
+def _padded_rows(tri: TriangleBatch, maps: np.ndarray, width: int) -> np.ndarray:
+    """Rows of ``tri`` of each of ``maps`` as (len(maps), width), -1 past a map's own triangles."""
+    slot = np.arange(width)
+    return np.where(slot < tri.count[maps][:, None], tri.offsets[maps][:, None] + slot, -1)
+
+
+def _vote(tri_trial, vp, vq, n, B):
+    """One-to-one correspondences by decreasing votes, at least two votes each, per map pair
+    (landmark indices offset by ``n`` per map pair, so that one call serves them all)."""
+    off = (tri_trial * n)[:, None]
+    uniq, keep, votes = resolve_correspondences(off + vp, off + vq, np.ones(len(vp)))
+    winners = np.flatnonzero(keep & (votes >= 2))
+    return ((uniq[winners, 0] // n).astype(np.intp), (uniq[winners] % n).astype(np.intp),
+            np.bincount(uniq[~keep, 0] // n, minlength=B))
 
 
 def merge(P, Q, sigma, tri_p: TriangleBatch, tri_q: TriangleBatch, rng=None) -> MergeBatch:
     """Groth's matcher on B map pairs (``rng`` unused: the method is deterministic)."""
-    parts = [groth_pairs(P[b], Q[b], float(sigma[b]), tri_p[b], tri_q[b]) for b in range(len(P))]
-    return build_from_parts(method="groth", P=P, Q=Q, sigma=sigma, log_tau=np.full(len(P), np.nan),
-                            tri_p=tri_p, tri_q=tri_q, parts=parts)
+    tri_trial, tri_pairs, scores, declared, pair_trial, pairs, n_conflicts = groth_pairs(P, Q, sigma, tri_p, tri_q)
+    return build_batch(method="groth", P=P, Q=Q, sigma=sigma, log_tau=np.full(len(P), np.nan), tri_p=tri_p,
+                       tri_q=tri_q, tri_trial=tri_trial, triangle_pairs=tri_pairs, triangle_log_lr=scores,
+                       declared=declared, pair_trial=pair_trial, pairs=pairs, n_conflicts=n_conflicts)
