@@ -299,7 +299,7 @@ def reject_outliers_batch(P, Q, pair_trial, pairs, sigma, gate_p: float = 1e-3) 
     """
     gate = chdtri(2, gate_p)
     B = len(P)
-    a, b = P[pair_trial, pairs[:, 0]], Q[pair_trial, pairs[:, 1]]
+    xp, xq = P[pair_trial, pairs[:, 0]], Q[pair_trial, pairs[:, 1]]
     keep = np.ones(len(pairs), dtype=bool)
     rejecting = np.ones(B, dtype=bool)
     while True:
@@ -307,7 +307,7 @@ def reject_outliers_batch(P, Q, pair_trial, pairs, sigma, gate_p: float = 1e-3) 
         idx = np.flatnonzero(keep & rejecting[pair_trial])
         if not idx.size:
             return keep
-        k, ak, bk = pair_trial[idx], a[idx], b[idx]
+        k, ak, bk = pair_trial[idx], xp[idx], xq[idx]
         theta, t, _ = fit_transforms(k, ak, bk, B)
         c, s = np.cos(theta), np.sin(theta)
         mu = 0.5 * (ak + rotate(-theta[k], (bk - t[k])[:, None, :])[:, 0])
