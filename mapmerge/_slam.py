@@ -50,21 +50,20 @@ def solver_settings(overrides=None) -> dict:
     if unknown:
         raise ValueError(f"solver settings must be among {tunable}, got {unknown}")
     settings = {**SETTINGS, **overrides}
-    threshold, skip = settings["relinearize_threshold"], settings["relinearize_skip"]
-    if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not 0 < threshold < np.inf:
-        raise ValueError(f"relinearize_threshold must be a positive number, got {threshold!r}")
+    for key in ("relinearize_threshold", "prior_sigma"):
+        value = settings[key]
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < np.inf:
+            raise ValueError(f"{key} must be a positive number, got {value!r}")
+    skip = settings["relinearize_skip"]
     if isinstance(skip, bool) or not isinstance(skip, (int, np.integer)) or skip < 1:
         raise ValueError(f"relinearize_skip must be an integer >= 1, got {skip!r}")
     if not isinstance(settings["batch_refinement"], bool):
         raise ValueError(f"batch_refinement must be True or False, got {settings['batch_refinement']!r}")
     if settings["sighting_kernel"] not in (None, "huber"):
         raise ValueError(f"sighting_kernel must be None or 'huber', got {settings['sighting_kernel']!r}")
-    prior = settings["prior_sigma"]
-    if isinstance(prior, bool) or not isinstance(prior, (int, float)) or not 0 < prior < np.inf:
-        raise ValueError(f"prior_sigma must be a positive number, got {prior!r}")
     # Plain Python numbers: the settings go into the cache key as JSON.
-    return {**settings, "relinearize_threshold": float(threshold), "relinearize_skip": int(skip),
-            "prior_sigma": float(prior)}
+    return {**settings, "relinearize_threshold": float(settings["relinearize_threshold"]),
+            "relinearize_skip": int(skip), "prior_sigma": float(settings["prior_sigma"])}
 
 
 def cache_dir() -> Path:
