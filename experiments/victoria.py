@@ -225,6 +225,7 @@ def solver_check() -> pd.DataFrame:
 
 #: Solver settings other than the defaults that ``solver_settings_table`` tries.
 SOLVER_VARIANTS = {
+    "GTSAM load2D's sighting noise": {"sighting_noise": "load2d"},
     "relinearise at every pose": {"relinearize_skip": 1},
     "no batch refinement": {"batch_refinement": False},
     "Huber kernel on sightings": {"sighting_kernel": "huber"},

@@ -68,14 +68,18 @@ class VictoriaParkLog:
     ----------
     odometry : (P-1, 3) ndarray
         Relative motion (dx, dy, dθ) from pose i to pose i+1 (pose indices).
-    odometry_info : (P-1, 6) ndarray
-        The six information entries of each odometry line, as in the file.
+    odometry_cov : (P-1, 6) ndarray
+        The upper triangle of each odometry line's covariance (xx, xy, xθ,
+        yy, yθ, θθ), as in the file.
     obs_pose : (M,) int ndarray
         Pose index of each tree observation.
     obs_tree : (M,) int ndarray
         Tree id (row of the reference tree map) of each observation.
     obs_xy : (M, 2) ndarray
         The tree in the robot frame, metres.
+    obs_cov : (M, 2, 2) ndarray
+        Its covariance in the robot frame, m² (0.4 I on every line of the
+        bundled file: a standard deviation of 0.63 m per axis).
     trajectory : (P_ref, 3) ndarray
         Reference pose (x, y, θ) of pose index i.
     trees : (151, 2) ndarray
@@ -87,10 +91,11 @@ class VictoriaParkLog:
     """
 
     odometry: np.ndarray
-    odometry_info: np.ndarray
+    odometry_cov: np.ndarray
     obs_pose: np.ndarray
     obs_tree: np.ndarray
     obs_xy: np.ndarray
+    obs_cov: np.ndarray
     trajectory: np.ndarray
     trees: np.ndarray
     pose_ids: np.ndarray
@@ -190,7 +195,7 @@ def load_log(path=None) -> VictoriaParkLog:
     if not log.is_file():
         raise DatasetError(f"Victoria Park file not found: {log}")
     pose_ids: list[int] = []
-    odometry, info, observations = [], [], []
+    odometry, odometry_cov, observations, obs_cov = [], [], [], []
     with open(log) as fh:
         for number, line in enumerate(fh, 1):
             fields = line.split()
@@ -205,9 +210,11 @@ def load_log(path=None) -> VictoriaParkLog:
                         raise ValueError(f"odometry from pose {a} does not continue the chain at {pose_ids[-1]}")
                     pose_ids.append(b)
                     odometry.append([float(v) for v in fields[3:6]])
-                    info.append([float(v) for v in fields[6:12]])
+                    odometry_cov.append([float(v) for v in fields[6:12]])
                 elif fields[0] == "LANDMARK" and len(fields) == 8:
                     observations.append((int(fields[1]), int(fields[2]), float(fields[3]), float(fields[4])))
+                    cxx, cxy, cyy = (float(v) for v in fields[5:8])
+                    obs_cov.append([[cxx, cxy], [cxy, cyy]])
                 else:
                     raise ValueError(f"unknown record {fields[0]!r} with {len(fields)} fields")
             except ValueError as exc:
@@ -226,10 +233,11 @@ def load_log(path=None) -> VictoriaParkLog:
         raise DatasetError(f"{root / TREES_FILE} has {len(trees)} trees, the log observes {len(tree_ids)}")
     return VictoriaParkLog(
         odometry=np.array(odometry),
-        odometry_info=np.array(info),
+        odometry_cov=np.array(odometry_cov),
         obs_pose=obs_pose,
         obs_tree=np.array([tree_ids[lm] for _, lm, _, _ in observations], dtype=np.intp),
         obs_xy=np.array([[x, y] for _, _, x, y in observations]),
+        obs_cov=np.array(obs_cov).reshape(-1, 2, 2),
         trajectory=trajectory,
         trees=trees,
         pose_ids=np.array(pose_ids, dtype=np.int64),
