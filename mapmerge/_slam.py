@@ -17,8 +17,9 @@ swing metres sideways. On the whole drive the file's noise puts the trees
 numbers as information instead of covariance gives 0.96 m.
 
 Once the drive ends, a batch Levenberg-Marquardt refinement starts from
-the incremental estimate and is kept only if it lowers the graph's error. The trees' joint covariance (2m x 2m) comes from the
-solution kept; ``datasets.slam_map`` derives per-tree covariances from it.
+the incremental estimate and is kept only if it lowers the graph's error.
+The trees' joint covariance (2m x 2m) comes from the solution kept;
+``datasets.slam_map`` derives per-tree covariances from it.
 
 Solutions are cached on disk (``cache_dir()``), keyed by the data file's
 contents, the agent's pose range and the solver's settings: an ordinary
