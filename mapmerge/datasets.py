@@ -374,9 +374,12 @@ def slam_map(start: int = 0, stop: int | None = None, path=None, gauge: str = "s
         Solver settings other than the defaults, for checking that a map's
         error is the data's and not the solver's: ``relinearize_threshold``
         (default 0.1), ``relinearize_skip`` (10; 1 relinearises at every
-        pose), ``batch_refinement`` (True), ``sighting_kernel`` (None, or
-        ``"huber"`` for a Huber M-estimator on the tree sightings) and
-        ``prior_sigma`` (1e-6, the first pose's anchor).
+        pose), ``batch_refinement`` (True), ``sighting_noise`` (``"file"``:
+        each sighting's covariance from the data file; ``"load2d"``: GTSAM
+        ``load2D``'s bearing noise of 0.2 rad at any range),
+        ``sighting_kernel`` (None, or ``"huber"`` for a Huber M-estimator on
+        the tree sightings) and ``prior_sigma`` (1e-6, the first pose's
+        anchor).
 
     Returns
     -------
