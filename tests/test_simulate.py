@@ -19,6 +19,9 @@ def test_snr_definition_and_frames():
     edges = delaunay_edges(sc.truth)
     lengths = np.linalg.norm(sc.truth[edges[:, 0]] - sc.truth[edges[:, 1]], axis=1)
     assert 10 * np.log10(lengths.var(ddof=1) / (2 * sc.sigma**2)) == pytest.approx(35)
+    # The one-set helper is the batch's own σ to the bit, σ̄² the edge lengths' sample variance.
+    sigma, sigma_bar2 = mm.simulate.sigma_from_snr(sc.truth, 35)
+    assert sigma == sc.sigma and sigma_bar2 == pytest.approx(lengths.var(ddof=1))
     # Residuals in each frame are the noise: about σ per coordinate.
     rp = sc.p - sc.truth[sc.ids_p]
     rq = sc.q - (sc.truth[sc.ids_q] @ mm.rotation(sc.theta).T + sc.t)
