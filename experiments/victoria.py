@@ -235,6 +235,8 @@ SOLVER_VARIANTS = {
 def solver_settings_table() -> pd.DataFrame:
     """Each agent's map error (RMSE after the fit by tree id, m) with the default solver and each variant."""
     log = load_log()
+    # The solver's own settings; load2D's rule changes the model, not how it is solved.
+    solver_only = [name for name, v in SOLVER_VARIANTS.items() if "sighting_noise" not in v]
     rows = []
     for cut in SLAM_CUTS:
         for agent, (start, stop) in (("p", (0, cut)), ("q", (cut, None))):
@@ -242,8 +244,6 @@ def solver_settings_table() -> pd.DataFrame:
             for name, settings in {"default": {}, **SOLVER_VARIANTS}.items():
                 ids, points, _ = slam_map(start, stop, solver=settings)
                 row[name] = fit_error(points, log.trees[ids])["rmse"]
-            # The solver's own settings; load2D's rule changes the model, not how it is solved.
-            solver_only = [name for name, v in SOLVER_VARIANTS.items() if "sighting_noise" not in v]
             row["largest change, solver settings"] = max(abs(row[name] - row["default"]) for name in solver_only)
             rows.append(row)
     return pd.DataFrame(rows)
