@@ -13,7 +13,9 @@ merged map and the reference trees at the default cut; and, with the slam
 source, ``solver_check.md``: the same SLAM solver on the whole drive against
 the reference tree map; and ``min_sightings.md``: ``consensus`` on the
 SLAM maps when each agent publishes only the trees it sighted at least
-1, 2 or 3 times.
+1, 2 or 3 times; and ``rigidity.md``: per cut and source, ``consensus``
+followed by ``residual_match`` on the trees it left unpaired (a second
+significant rigid match: one agent's map is bent).
 """
 
 from __future__ import annotations
@@ -35,7 +37,7 @@ from scipy.spatial import ConvexHull  # noqa: E402
 
 from mapmerge.alignment import align_pairs, wrap_angle  # noqa: E402
 from mapmerge.datasets import DEFAULT_CUT, fit_error, load_log, map_quality, slam_map, victoria_park  # noqa: E402
-from mapmerge.merging import merge_maps  # noqa: E402
+from mapmerge.merging import merge_maps, residual_match  # noqa: E402
 from mapmerge.metrics import map_errors, oracle_association  # noqa: E402
 
 from .aggregate import find_runs, save_table  # noqa: E402
@@ -216,6 +218,29 @@ def confirmation_table() -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def rigidity_table(sources) -> pd.DataFrame:
+    """``consensus`` (with the agents' covariances on the slam source), then ``residual_match`` on the
+    trees it left unpaired: a second significant rigid match says, from the maps alone, that one map is bent."""
+    rows = []
+    for source in sources:
+        for cut in SLAM_CUTS:
+            _, pair = quality(cut, source)
+            cov = {"cov_p": pair.cov_p, "cov_q": pair.cov_q} if source == "slam" else {}
+            first = merge_maps(pair.p, pair.q, pair.sigma, **cov)
+            err = map_errors(pair, first)
+            row = {"cut": cut, "source": source, "covariances": bool(cov), "matched": first.matched,
+                   "pairs": len(first.pairs), "correct": err["correct_pairs"],
+                   "rot err (deg)": err["rot_err_deg"] if first.matched else np.nan}
+            if first.matched:
+                second = residual_match(pair.p, pair.q, first, pair.sigma, **cov)
+                right = pair.ids_p[second.pairs[:, 0]] == pair.ids_q[second.pairs[:, 1]]
+                row.update({"second match": second.matched, "its pairs": len(second.pairs),
+                            "its correct": int(right.sum()),
+                            "its rotation against the first (deg)": np.degrees(second.rotation_offset)})
+            rows.append(row)
+    return pd.DataFrame(rows)
+
+
 def solver_check() -> pd.DataFrame:
     """The SLAM solver on the whole drive against the reference tree map (rigid fit by tree id)."""
     log = load_log()
@@ -252,7 +277,8 @@ def solver_settings_table() -> pd.DataFrame:
 def write(sweep: Path, out: Path) -> list[Path]:
     trials, examples = load_runs(sweep)
     out.mkdir(parents=True, exist_ok=True)
-    paths = [*save_table(table(trials, examples), out / "table"), *figure(examples, out)]
+    paths = [*save_table(table(trials, examples), out / "table"), *figure(examples, out),
+             *save_table(rigidity_table(sorted(trials.source.unique())), out / "rigidity")]
     if (trials.source == "slam").any():
         paths += save_table(solver_check(), out / "solver_check")
         paths += save_table(solver_settings_table(), out / "solver_settings")

@@ -23,7 +23,7 @@ from .alignment import Alignment, align, rotation, wrap_angle
 from .combining import CombinedMap
 from .mapfiles import LandmarkMap, MapFileError, read_map, write_map
 from .matching import log_tau_from_chi2, resolve_log_tau
-from .merging import METHODS, merge_batch, merge_maps
+from .merging import METHODS, ResidualMatch, merge_batch, merge_maps, residual_match
 from .result import MergeBatch, MergeResult
 from .statistic import glrt
 from .triangles import Triangles, triangulate
@@ -36,6 +36,7 @@ __all__ = [
     "METHODS",
     "MergeBatch",
     "MergeResult",
+    "ResidualMatch",
     "Triangles",
     "align",
     "glrt",
@@ -45,6 +46,7 @@ __all__ = [
     "read_map",
     "write_map",
     "metrics",
+    "residual_match",
     "resolve_log_tau",
     "rotation",
     "simulate",

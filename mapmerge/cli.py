@@ -6,8 +6,10 @@
 
 Reads two maps (``mapmerge.mapfiles``), runs ``merge_maps`` (method
 ``consensus`` unless ``--method`` says otherwise) and writes the combined
-map in map A's frame. Exit status: 0 matched, 1 no match (nothing written),
-2 bad input.
+map in map A's frame. After a match it looks for a second rigid match among the
+landmarks left unpaired (``residual_match``) and warns when there is one:
+the maps are then bent, and the combined map aligns only the larger part.
+Exit status: 0 matched, 1 no match (nothing written), 2 bad input.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ import numpy as np
 
 from ._validation import check_points
 from .mapfiles import MapFileError, read_map, write_map
-from .merging import DEFAULT_TAU, METHODS, merge_maps, pooled_sigma
+from .merging import DEFAULT_TAU, METHODS, merge_maps, pooled_sigma, residual_match
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -80,6 +82,10 @@ def main(argv=None) -> int:
               f"no match: {args.map_b} could not be matched to {args.map_a} (method {res.method}); "
               "nothing written", file=sys.stdout if args.json else sys.stderr)
         return 1
+    second = residual_match(map_p.points, map_q.points, res, sigma, args.tau, map_p.cov, map_q.cov)
+    info["second_match"] = ({"pairs": int(len(second.pairs)),
+                             "rotation_offset_deg": float(np.degrees(second.rotation_offset))}
+                            if second.matched else None)
     info["output"] = str(write_map(res, args.output, map_p, map_q))
     if args.plot:
         from .plotting import plot_merge
@@ -96,6 +102,11 @@ def main(argv=None) -> int:
             print(f"sigma = {info['sigma']:.6g} (RMS of the maps' own standard deviations)")
         print(f"combined map: {len(res.merged)} landmarks -> {info['output']}"
               + (f"; plot -> {info['plot']}" if args.plot else ""))
+        if second.matched:
+            print(f"warning: the landmarks left unpaired hold a second rigid match ({len(second.pairs)} pairs, "
+                  f"rotated {np.degrees(second.rotation_offset):.2f} deg against the first): one map is bent, "
+                  "so the combined map aligns only the larger matched part and holds the other part's common "
+                  "landmarks twice", file=sys.stderr)
     return 0
 
 

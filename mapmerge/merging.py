@@ -25,6 +25,7 @@ import numpy as np
 from . import consensus, search
 from ._validation import check_covariances, check_geometry, check_points, check_rng, check_sigma
 from .baselines import astroalign as astroalign_baseline
+from .alignment import wrap_angle
 from .baselines import groth as groth_baseline
 from .matching import OBJECTIVES, TriangleMatch, match_triangles, resolve_correspondences, resolve_log_tau
 from .result import MergeBatch, MergeResult, build_batch
@@ -275,3 +276,96 @@ def _check_batch(maps, name: str) -> np.ndarray:
         raise ValueError(f"{name} contains NaN or inf; all coordinates must be finite")
     check_geometry(arr, name, indexed=True)
     return arr
+
+
+@dataclass(frozen=True)
+class ResidualMatch:
+    """A second rigid match among the landmarks a merge left unpaired (``residual_match``).
+
+    Attributes
+    ----------
+    matched : bool
+        Whether the unpaired landmarks hold a significant match of their own.
+    theta : float
+        Its rotation (``q ≈ R(θ) p + t``); NaN when not matched.
+    t : (2,) ndarray
+        Its translation; NaN when not matched.
+    pairs : (K, 2) int ndarray
+        Its correspondences, as rows of the whole maps (p row, q row).
+    rotation_offset : float
+        Its rotation minus the first merge's, wrapped to (-π, π]; NaN when
+        not matched.
+    """
+
+    matched: bool
+    theta: float
+    t: np.ndarray
+    pairs: np.ndarray
+    rotation_offset: float
+
+
+def residual_match(P, Q, result: MergeResult, sigma=None, tau=DEFAULT_TAU, cov_p=None, cov_q=None) -> ResidualMatch:
+    """Look for a second rigid match among the landmarks a merge left unpaired.
+
+    When one rigid motion relates two maps, the landmarks a merge leaves
+    unpaired are those only one map holds (and common ones the noise hid),
+    and chance seldom gives them a significant match of their own:
+    ``consensus`` accepts a match only when its expected number of chance
+    equivalents is below ``consensus.MATCH_NFA``. A second match means the
+    maps are not one rigid body: drift bent one of them, so part of their
+    overlap moved rigidly against the rest. The merge then aligned the
+    larger part, and the common landmarks of the other part appear twice in
+    its combined map. Too few landmarks left in the bent part (a handful)
+    hold no significant match, so "no second match" does not prove a map
+    rigid.
+
+    Parameters
+    ----------
+    P, Q : (n, 2) array_like
+        The maps ``result`` merged.
+    result : MergeResult
+        A matched merge of ``P`` and ``Q`` (any method).
+    sigma, tau, cov_p, cov_q
+        As for ``merge_maps``; pass what the first merge was given. Without
+        ``sigma``, it is ``pooled_sigma`` over the whole maps, as there.
+
+    Returns
+    -------
+    ResidualMatch
+        ``consensus`` on the unpaired landmarks, indices into the whole maps.
+
+    Raises
+    ------
+    ValueError
+        On invalid maps, ``sigma``, ``tau`` or covariances, or a ``result``
+        that is not a matched merge of maps this size.
+    """
+    P, Q = check_points(P, "P"), check_points(Q, "Q")
+    cov_p, cov_q = check_covariances(cov_p, len(P), "cov_p"), check_covariances(cov_q, len(Q), "cov_q")
+    if (cov_p is None) != (cov_q is None):
+        raise ValueError("cov_p and cov_q must be given together")
+    if sigma is None and cov_p is None:
+        raise ValueError("sigma is needed unless cov_p and cov_q give every landmark's covariance")
+    sigma = check_sigma(pooled_sigma(cov_p, cov_q) if sigma is None else sigma)
+    resolve_log_tau(tau)
+    if not result.matched:
+        raise ValueError("result must be a matched merge (result.matched is False)")
+    if np.any(result.pairs[:, 0] >= len(P)) or np.any(result.pairs[:, 1] >= len(Q)):
+        raise ValueError("result pairs rows beyond P or Q; pass the maps it merged")
+    rest_p = np.setdiff1d(np.arange(len(P)), result.pairs[:, 0])
+    rest_q = np.setdiff1d(np.arange(len(Q)), result.pairs[:, 1])
+    none = ResidualMatch(False, float("nan"), np.full(2, np.nan), np.empty((0, 2), np.intp), float("nan"))
+    if min(len(rest_p), len(rest_q)) < 3:
+        return none
+    try:
+        check_geometry(P[rest_p][None], "P")
+        check_geometry(Q[rest_q][None], "Q")
+    except ValueError:
+        # What is left lies on one line: no triangle, no rigid match to find.
+        return none
+    second = merge_maps(P[rest_p], Q[rest_q], sigma, tau, "consensus",
+                        cov_p=None if cov_p is None else cov_p[rest_p], cov_q=None if cov_q is None else cov_q[rest_q])
+    if not second.matched:
+        return none
+    pairs = np.stack([rest_p[second.pairs[:, 0]], rest_q[second.pairs[:, 1]]], axis=1)
+    return ResidualMatch(True, second.theta, second.t, pairs, float(wrap_angle(second.theta - result.theta)))

@@ -48,7 +48,7 @@ import numpy as np
 
 from scipy.spatial import Delaunay
 
-from ._validation import check_rng
+from ._validation import check_points, check_rng
 from .alignment import covariance_in_p_frame, rotate
 
 #: Width / height of each map's rectangle (strip layout).
@@ -107,6 +107,57 @@ class Scenario:
     @functools.cached_property
     def n_common(self) -> int:
         return int(np.intersect1d(self.ids_p, self.ids_q).size)
+
+
+def bend(points, angle: float, fraction: float = 0.4, direction=None) -> np.ndarray:
+    """A map bent as heading drift bends it: its far part turned rigidly about a hinge.
+
+    The landmarks beyond the ``1 - fraction`` quantile along ``direction``
+    (through the map's centroid) turn by ``angle`` about the point of that
+    line at the quantile; the others stay. No map of this package's scenarios is bent;
+    this makes the non-rigid maps ``merging.residual_match`` is for.
+
+    Parameters
+    ----------
+    points : (n, 2) array_like
+        The map.
+    angle : float
+        Rotation of the far part, radians (counter-clockwise).
+    fraction : float, default 0.4
+        Share of the landmarks turned, in (0, 1).
+    direction : (2,) array_like, optional
+        Where the turned part lies from the centroid; default the map's
+        principal axis (either way along it).
+
+    Returns
+    -------
+    (n, 2) ndarray
+        The bent map (a copy; rows in the same order).
+
+    Raises
+    ------
+    ValueError
+        On an invalid map, ``fraction`` outside (0, 1) or a ``direction``
+        that is not a finite non-zero 2-vector.
+    """
+    points = check_points(points, "points")
+    if not 0 < fraction < 1:
+        raise ValueError(f"fraction must be in (0, 1), got {fraction!r}")
+    centre = points.mean(axis=0)
+    if direction is None:
+        axis = np.linalg.svd(points - centre, full_matrices=False)[2][0]
+    else:
+        axis = np.asarray(direction, dtype=float)
+        if axis.shape != (2,) or not np.all(np.isfinite(axis)) or not np.any(axis):
+            raise ValueError(f"direction must be a finite non-zero (2,) vector, got {direction!r}")
+        axis = axis / np.linalg.norm(axis)
+    along = (points - centre) @ axis
+    cut = np.quantile(along, 1 - fraction)
+    hinge = centre + cut * axis
+    out = points.copy()
+    far = along > cut
+    out[far] = hinge + rotate(float(angle), points[far] - hinge)
+    return out
 
 
 def sigma_from_snr(points: np.ndarray, snr_db: float) -> tuple[float, float]:

@@ -31,7 +31,7 @@ def test_merge_writes_the_combined_map_and_a_json_summary(tmp_path, capsys):
     out, plot = tmp_path / "merged.csv", tmp_path / "merged.png"
     assert main(["merge", str(a), str(b), "--sigma", "0.02", "-o", str(out), "--plot", str(plot), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
-    assert info["matched"] and info["pairs"] == 20
+    assert info["matched"] and info["pairs"] == 20 and info["second_match"] is None
     assert abs(info["theta"] - th) < 3 * info["theta_std"] + 1e-9
     np.testing.assert_allclose(info["t"], [1.0, 2.0], atol=5 * max(info["t_std"]))
     merged = pd.read_csv(out)
@@ -40,6 +40,21 @@ def test_merge_writes_the_combined_map_and_a_json_summary(tmp_path, capsys):
     assert (fused.id_p == fused.id_q).all()  # every fused row joins the same landmark
     assert {"x", "y", "origin", "index_p", "index_q", "sxx", "sxy", "syy"} <= set(merged.columns)
     assert plot.stat().st_size > 10_000
+
+
+def test_a_bent_map_merges_with_a_warning_naming_the_second_match(tmp_path, capsys):
+    sc = mm.simulate.make_pair(200, 0.75, 30, rng=3)
+    towards_overlap = sc.q[np.isin(sc.ids_q, sc.ids_p)].mean(axis=0) - sc.q.mean(axis=0)
+    q = mm.simulate.bend(sc.q, np.radians(8.0), 0.4, towards_overlap)
+    a, b, out = tmp_path / "a.csv", tmp_path / "b.csv", tmp_path / "merged.csv"
+    pd.DataFrame(sc.p, columns=["x", "y"]).to_csv(a, index=False)
+    pd.DataFrame(q, columns=["x", "y"]).to_csv(b, index=False)
+    assert main(["merge", str(a), str(b), "--sigma", str(sc.sigma), "-o", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "warning: the landmarks left unpaired hold a second rigid match" in err and "deg" in err
+    assert main(["merge", str(a), str(b), "--sigma", str(sc.sigma), "-o", str(out), "--json"]) == 0
+    second = json.loads(capsys.readouterr().out)["second_match"]
+    assert second["pairs"] >= 20 and abs(abs(second["rotation_offset_deg"]) - 8.0) < 0.5
 
 
 def test_unrelated_maps_exit_1_and_write_nothing(tmp_path, capsys):

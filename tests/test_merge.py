@@ -153,3 +153,60 @@ def test_merge_batch_names_the_map_with_bad_geometry(which, b, how, match):
     P, Q = (_spoil(P, b, how), Q) if which == "P" else (P, _spoil(Q, b, how))
     with pytest.raises(ValueError, match=match):  # not Qhull's error, nor a silent merge
         mm.merge_batch(P, Q, batch.sigma)
+
+
+def _bent_pair(angle_deg, seed=3):
+    """A 200-landmark pair whose q is bent on its overlap side (40 % of q turned)."""
+    sc = mm.simulate.make_pair(200, 0.75, 30, rng=seed)
+    towards_overlap = sc.q[np.isin(sc.ids_q, sc.ids_p)].mean(axis=0) - sc.q.mean(axis=0)
+    return sc, mm.simulate.bend(sc.q, np.radians(angle_deg), 0.4, towards_overlap)
+
+
+def test_residual_match_finds_the_bent_part_of_a_map():
+    sc, q = _bent_pair(8.0)
+    first = mm.merge_maps(sc.p, q, sc.sigma)
+    second = mm.residual_match(sc.p, q, first, sc.sigma)
+    assert first.matched and second.matched
+    assert abs(abs(np.degrees(second.rotation_offset)) - 8.0) < 0.5
+    correct = sc.ids_p[second.pairs[:, 0]] == sc.ids_q[second.pairs[:, 1]]
+    assert len(second.pairs) >= 20 and correct.mean() >= 0.9
+    # The second match is among the landmarks the first left unpaired.
+    assert not np.isin(second.pairs[:, 0], first.pairs[:, 0]).any()
+    assert not np.isin(second.pairs[:, 1], first.pairs[:, 1]).any()
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_residual_match_finds_nothing_on_rigid_maps(seed):
+    sc = mm.simulate.make_pair(100, 0.75, 20, rng=seed, layout="interleaved")
+    first = mm.merge_maps(sc.p, sc.q, sc.sigma)
+    second = mm.residual_match(sc.p, sc.q, first, sc.sigma)
+    assert first.matched and not second.matched
+    assert second.pairs.shape == (0, 2) and np.isnan(second.theta) and np.isnan(second.rotation_offset)
+
+
+def test_residual_match_rejects_bad_input():
+    sc = mm.simulate.make_pair(50, 0.75, 30, rng=4)
+    first = mm.merge_maps(sc.p, sc.q, sc.sigma)
+    unmatched = mm.merge_maps(sc.p, mm.simulate.make_pair(50, 0.75, 30, rng=5).q, sc.sigma)
+    assert first.matched and not unmatched.matched
+    with pytest.raises(ValueError, match="result must be a matched merge"):
+        mm.residual_match(sc.p, sc.q, unmatched, sc.sigma)
+    with pytest.raises(ValueError, match="pass the maps it merged"):
+        mm.residual_match(sc.p[:10], sc.q, first, sc.sigma)
+    with pytest.raises(ValueError, match="tau"):
+        mm.residual_match(sc.p, sc.q, first, sc.sigma, tau="nope")
+    with pytest.raises(ValueError, match="sigma is needed"):
+        mm.residual_match(sc.p, sc.q, first)
+
+
+def test_bend_turns_the_far_part_rigidly_about_a_hinge():
+    sc = mm.simulate.make_pair(100, 0.75, 30, rng=6)
+    bent = mm.simulate.bend(sc.q, np.radians(10.0), 0.3)
+    moved = np.any(bent != sc.q, axis=1)
+    assert moved.sum() == 30
+    # The turned part keeps its shape: all its pairwise distances.
+    d = lambda x: np.linalg.norm(x[:, None] - x[None], axis=2)  # noqa: E731
+    np.testing.assert_allclose(d(bent[moved]), d(sc.q[moved]), atol=1e-9)
+    for bad, match in (({"fraction": 1.0}, "fraction"), ({"direction": [0.0, 0.0]}, "direction")):
+        with pytest.raises(ValueError, match=match):
+            mm.simulate.bend(sc.q, 0.1, **{"fraction": 0.4, **bad})
