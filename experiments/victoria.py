@@ -35,7 +35,7 @@ import pandas as pd  # noqa: E402
 
 from scipy.spatial import ConvexHull  # noqa: E402
 
-from mapmerge.alignment import align_pairs, wrap_angle  # noqa: E402
+from mapmerge.alignment import align_pairs, rotate, wrap_angle  # noqa: E402
 from mapmerge.datasets import DEFAULT_CUT, fit_error, load_log, map_quality, slam_map, victoria_park  # noqa: E402
 from mapmerge.merging import merge_maps, residual_match  # noqa: E402
 from mapmerge.metrics import map_errors, oracle_association  # noqa: E402
@@ -158,33 +158,70 @@ def table(trials: pd.DataFrame, examples: pd.DataFrame) -> pd.DataFrame:
 
 
 def figure(examples: pd.DataFrame, out: Path, cut: int = DEFAULT_CUT, method: str = "consensus") -> list[Path]:
-    """Agent maps in their own frames, and the merged map on the reference trees."""
+    """Agent maps in their own frames, and the merged map on the reference trees (one row per source)."""
     sources = sorted(examples.source.unique())
+    rows_label = {"reference": "trees on the reference trajectory", "slam": "each agent's own SLAM map"}
+    colours = {"fused": "tab:green", "p": "tab:blue", "q": "tab:orange"}
     with plt.rc_context(STYLE):
-        fig, axes = plt.subplots(len(sources), 3, figsize=(8.0, 3.0 * len(sources)), squeeze=False)
+        fig, axes = plt.subplots(len(sources), 3, figsize=(7.5, 2.6 * len(sources)), squeeze=False,
+                                 layout="constrained", gridspec_kw={"width_ratios": [1.0, 1.0, 1.25]})
         for row, source in zip(axes, sources):
             ex = examples[(examples.cut == cut) & (examples.source == source)
                           & (examples.method == method) & ~examples.use_cov]
-            for ax, kind, title in zip(row[:2], ("p", "q"), ("agent p (before the cut)", "agent q (from the cut)")):
+            for ax, kind, title in zip(row[:2], ("p", "q"), (f"agent p: poses before {cut}",
+                                                               f"agent q: poses from {cut} on")):
                 pts = ex[ex.kind == kind]
-                ax.scatter(pts.x, pts.y, s=6, c="tab:blue" if kind == "p" else "tab:orange")
-                ax.set_title(f"{source} maps: {title}\n{len(pts)} trees, in its own frame (m)")
+                ax.scatter(pts.x, pts.y, s=5, c=colours[kind])
+                ax.set_title(f"{title}\n{len(pts)} trees, its own frame", fontsize=7)
+            row[0].set_ylabel(f"{rows_label.get(source, source)}\ny (m)")
             ax = row[2]
             truth, merged = ex[ex.kind == "truth"], ex[ex.kind == "merged"]
-            ax.scatter(truth.x, truth.y, marker="+", s=25, c="k", lw=0.6, label="reference trees")
-            colours = {"fused": "tab:green", "p": "tab:blue", "q": "tab:orange"}
+            ax.scatter(truth.x, truth.y, marker="+", s=22, c="k", lw=0.6, label="reference trees")
             for origin, colour in colours.items():
                 sel = merged[merged.origin == origin]
-                ax.scatter(sel.x, sel.y, marker="s", s=10, facecolors="none", edgecolors=colour,
-                           lw=0.6, label=f"merged: {origin} ({len(sel)})")
-            ax.set_title(f"{source} maps: {method} merge\nin p's frame (m)")
+                ax.scatter(sel.x, sel.y, marker="s", s=9, facecolors="none", edgecolors=colour,
+                           lw=0.6, label=f"merged, {origin} ({len(sel)})")
+            ax.set_title(f"{method} merge on the reference trees\nin p's frame", fontsize=7)
             ax.legend(fontsize=5.5, frameon=False, loc="upper left", bbox_to_anchor=(1.0, 1.0))
             for a in row:
-                a.set_aspect("equal")
+                a.set_aspect("equal", adjustable="datalim")
                 a.tick_params(labelsize=6)
-        fig.suptitle(f"Victoria Park, cut at pose {cut}", fontsize=8)
-        fig.tight_layout()
+        for a in axes[-1]:
+            a.set_xlabel("x (m)")
+        fig.suptitle(f"Victoria Park split at pose {cut}: two agents' maps and their merge", fontsize=8)
         return _save(fig, out, "victoria_park")
+
+
+def bent_figure(out: Path, cut: int = 5500) -> list[Path]:
+    """A bent late map: ``consensus``'s merge and the second rigid match ``residual_match`` finds among the
+    trees it left unpaired, on the reference trees (slam source, with the agents' covariances)."""
+    _, pair = quality(cut, "slam")
+    cov = {"cov_p": pair.cov_p, "cov_q": pair.cov_q}
+    first = merge_maps(pair.p, pair.q, pair.sigma, **cov)
+    second = residual_match(pair.p, pair.q, first, pair.sigma, **cov)
+    # The reference trees in p's frame: the rigid fit of the reference onto p's trees by id.
+    onto_p = align_pairs(pair.truth[pair.log_ids_p], pair.p, 1.0)
+    truth = rotate(onto_p.theta, pair.truth) + onto_p.t
+    with plt.rc_context(STYLE):
+        fig, ax = plt.subplots(figsize=(4.6, 4.6), layout="constrained")
+        ax.scatter(truth[:, 0], truth[:, 1], marker="+", s=22, c="k", lw=0.6, label="reference trees")
+        for pairs, colour, label in (
+                (first.pairs, "tab:green", f"merge ({len(first.pairs)} pairs)"),
+                (second.pairs, "tab:red", f"second match ({len(second.pairs)} pairs, "
+                                          f"{np.degrees(second.rotation_offset):+.1f}°)")):
+            if not len(pairs):
+                continue
+            ax.scatter(*pair.p[pairs[:, 0]].T, marker="o", s=12, facecolors="none", edgecolors=colour, lw=0.7,
+                       label=f"{label}: p's tree")
+            ax.scatter(*rotate(-first.theta, pair.q[pairs[:, 1]] - first.t).T, marker="s", s=10, c=colour,
+                       lw=0, alpha=0.6, label="   its partner in q, placed by the merge")
+        ax.set_aspect("equal")
+        ax.set_xlabel("x (m), p's frame")
+        ax.set_ylabel("y (m)")
+        ax.legend(fontsize=5.5, frameon=False, loc="upper right", bbox_to_anchor=(1.0, 0.74))
+        ax.set_title(f"Victoria Park split at pose {cut}, SLAM maps: q's map is bent,\nthe merge aligns its "
+                     "larger part; the trees it left unpaired hold a second match", fontsize=7)
+        return _save(fig, out, "victoria_park_bent")
 
 
 #: The preset's cuts, for the tables on the SLAM maps beyond the sweep's.
@@ -280,6 +317,7 @@ def write(sweep: Path, out: Path) -> list[Path]:
     paths = [*save_table(table(trials, examples), out / "table"), *figure(examples, out),
              *save_table(rigidity_table(sorted(trials.source.unique())), out / "rigidity")]
     if (trials.source == "slam").any():
+        paths += bent_figure(out)
         paths += save_table(solver_check(), out / "solver_check")
         paths += save_table(solver_settings_table(), out / "solver_settings")
         paths += save_table(confirmation_table(), out / "min_sightings")
