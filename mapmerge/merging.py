@@ -24,8 +24,8 @@ import numpy as np
 
 from . import consensus, search
 from ._validation import check_covariances, check_geometry, check_points, check_rng, check_sigma
-from .baselines import astroalign as astroalign_baseline
 from .alignment import wrap_angle
+from .baselines import astroalign as astroalign_baseline
 from .baselines import groth as groth_baseline
 from .matching import OBJECTIVES, TriangleMatch, match_triangles, resolve_correspondences, resolve_log_tau
 from .result import MergeBatch, MergeResult, build_batch
@@ -311,7 +311,8 @@ def residual_match(P, Q, result: MergeResult, sigma=None, tau=DEFAULT_TAU, cov_p
     unpaired are those only one map holds (and common ones the noise hid),
     and chance seldom gives them a significant match of their own:
     ``consensus`` accepts a match only when its expected number of chance
-    equivalents is below ``consensus.MATCH_NFA``. A second match means the
+    equivalents is below ``consensus.MATCH_NFA`` (``search.SEARCH_NFA`` for
+    its global search). A second match means the
     maps are not one rigid body: drift bent one of them, so part of their
     overlap moved rigidly against the rest. The merge then aligned the
     larger part, and the common landmarks of the other part appear twice in

@@ -114,8 +114,8 @@ def bend(points, angle: float, fraction: float = 0.4, direction=None) -> np.ndar
 
     The landmarks beyond the ``1 - fraction`` quantile along ``direction``
     (through the map's centroid) turn by ``angle`` about the point of that
-    line at the quantile; the others stay. No map of this package's scenarios is bent;
-    this makes the non-rigid maps ``merging.residual_match`` is for.
+    line at the quantile; the others stay. The scenarios of ``make_pairs``
+    are rigid; this makes the bent maps ``merging.residual_match`` is for.
 
     Parameters
     ----------
