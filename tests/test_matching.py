@@ -6,6 +6,8 @@ import pytest
 import mapmerge as mm
 from mapmerge.matching import assign, assign_sparse, correspondences
 
+from lp_reference import lapjvsp_assign
+
 
 def test_threshold_forms():
     assert mm.resolve_log_tau("chi2:0.05") == pytest.approx(-0.5 * 7.814727903251178)
@@ -58,6 +60,18 @@ def test_lp_objectives_and_the_sparse_lp_agree_with_brute_force(rng):
         cand = np.argwhere(np.ones((4, 5), bool))
         chosen = assign_sparse(log_lr[cand[:, 0], cand[:, 1]], cand, (4, 5), "lr")
         np.testing.assert_array_equal(chosen, assign(log_lr, "lr"))
+
+
+@pytest.mark.parametrize("objective", ["lr", "loglr"])
+def test_sparse_lp_is_the_maximum_weight_matching_of_scipys_solver(rng, objective):
+    """The min-cost flow of ``assign_sparse`` against scipy's exact sparse assignment (LAPJVsp) on random
+    sparse graphs with one giant component."""
+    for _ in range(20):
+        n_p, n_q = 60, 70
+        pairs = np.unique(np.stack([rng.integers(0, n_p, 400), rng.integers(0, n_q, 400)], axis=1), axis=0)
+        log_lr = -rng.exponential(3.0, size=len(pairs))
+        np.testing.assert_array_equal(assign_sparse(log_lr, pairs, (n_p, n_q), objective),
+                                      lapjvsp_assign(log_lr, pairs, (n_p, n_q), objective))
 
 
 def test_correspondences_count_the_dropped_rivals():

@@ -7,6 +7,8 @@ import mapmerge as mm
 from mapmerge import matching, metrics
 from mapmerge.matching import gate_radius, side_features
 
+from lp_reference import lapjvsp_assign
+
 LOG_TAU = mm.resolve_log_tau("chi2:0.01")
 
 
@@ -76,3 +78,14 @@ def test_consensus_on_a_large_map_uses_the_hough_pool():
 def test_consensus_large_unrelated_maps_give_no_match():
     sc = mm.simulate.make_pair(3000, 0.75, 30, rng=3, unrelated=True)
     assert not mm.merge_maps(sc.p, sc.q, sc.sigma, method="consensus").matched
+
+
+@pytest.mark.parametrize("method, seed", [("paper", 100), ("paper", 101), ("cyclic", 102)])
+def test_min_cost_flow_merges_as_scipys_sparse_assignment(monkeypatch, method, seed):
+    """Whole merges on the sparse path (400 landmarks, 25 dB: many competing candidates)."""
+    sc = mm.simulate.make_pair(400, 0.75, 25, rng=seed)
+    flow = mm.merge_maps(sc.p, sc.q, sc.sigma, method=method)
+    monkeypatch.setattr(matching, "assign_sparse", lapjvsp_assign)
+    lapjvsp = mm.merge_maps(sc.p, sc.q, sc.sigma, method=method)
+    np.testing.assert_array_equal(flow.triangle_pairs[flow.declared], lapjvsp.triangle_pairs[lapjvsp.declared])
+    np.testing.assert_array_equal(flow.pairs, lapjvsp.pairs)
