@@ -106,7 +106,8 @@ def main(argv=None) -> int:
             print(f"warning: the landmarks left unpaired hold a second rigid match ({len(second.pairs)} pairs, "
                   f"rotated {np.degrees(second.rotation_offset):.2f} deg against the first): one map is bent, "
                   "so the combined map aligns only the larger matched part and holds the other part's common "
-                  "landmarks twice", file=sys.stderr)
+                  "landmarks twice" + ("" if res.method == "consensus" else
+                                       f", or the {res.method} match is wrong"), file=sys.stderr)
     return 0
 
 

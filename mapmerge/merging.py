@@ -316,7 +316,8 @@ def residual_match(P, Q, result: MergeResult, sigma=None, tau=DEFAULT_TAU, cov_p
     maps are not one rigid body: drift bent one of them, so part of their
     overlap moved rigidly against the rest. The merge then aligned the
     larger part, and the common landmarks of the other part appear twice in
-    its combined map. Too few landmarks left in the bent part (a handful)
+    its combined map. (After a method that can merge by chance, such as
+    ``"paper"``, a second match may instead be the right one.) Too few landmarks left in the bent part (a handful)
     hold no significant match, so "no second match" does not prove a map
     rigid.
 
