@@ -62,8 +62,8 @@ def cell(layout: str, clutter: float, snr_db: float, bend_deg: float, n_pairs: i
             offset_err.append(abs(abs(np.degrees(second.rotation_offset)) - bend_deg))
             correct_share.append(np.mean(sc.ids_p[second.pairs[:, 0]] == sc.ids_q[second.pairs[:, 1]]))
     return {"pairs": "bent" if bend_deg else "rigid", "layout": layout, "clutter": clutter, "snr_db": snr_db,
-            "bend_deg": bend_deg,
-            "max_displacement_sigmas": float(np.median(displacement)) if displacement else 0.0, "n_pairs": n_pairs, "matched": matched, "second_match": found,
+            "bend_deg": bend_deg, "max_displacement_sigmas": float(np.median(displacement)) if displacement else 0.0,
+            "n_pairs": n_pairs, "matched": matched, "second_match": found,
             "second_match_rate": found / matched if matched else np.nan,
             "median_offset_err_deg": float(np.median(offset_err)) if offset_err else np.nan,
             "correct_share": float(np.mean(correct_share)) if correct_share else np.nan}
