@@ -38,7 +38,7 @@ from scipy.spatial import ConvexHull  # noqa: E402
 from mapmerge.alignment import align_pairs, rotate, wrap_angle  # noqa: E402
 from mapmerge.datasets import DEFAULT_CUT, fit_error, load_log, map_quality, slam_map, victoria_park  # noqa: E402
 from mapmerge.merging import merge_maps, residual_match  # noqa: E402
-from mapmerge.metrics import map_errors, oracle_association  # noqa: E402
+from mapmerge.metrics import map_errors, oracle_association, transform_oracle_association  # noqa: E402
 
 from .aggregate import find_runs, save_table  # noqa: E402
 from .figures import STYLE, _save  # noqa: E402
@@ -55,7 +55,9 @@ COLUMNS = {
     "n_q": "trees q", "n_common_landmarks": "common", "map_rmse_p": "map RMSE p (m)", "map_rmse_q": "map RMSE q (m)",
     "correct_pairs": "correct", "wrong_pairs": "wrong", "wrong_few": f"of them on a tree seen <= {FEW_SIGHTINGS}x",
     "oracle_correct": "oracle correct", "oracle_wrong": "oracle wrong",
-    "oracle_wrong_few": f"of them on a tree seen <= {FEW_SIGHTINGS}x (oracle)", "rot_err_deg": "rot err (deg)",
+    "oracle_wrong_few": f"of them on a tree seen <= {FEW_SIGHTINGS}x (oracle)",
+    "transform_oracle_correct": "transform oracle correct", "transform_oracle_wrong": "transform oracle wrong",
+    "rot_err_deg": "rot err (deg)",
     "rot_err_first_pose_deg": "rot err vs first poses (deg)",
     "rot_err_own_deg": "rot err vs its correct pairs' fit (deg)", "fused_rmse": "fused RMSE (m)",
     "agents_rmse": "better agent, same trees (m)", "ms": "time (ms)",
@@ -97,13 +99,18 @@ def wrong_on_few_sightings(pair, rows_p, rows_q) -> int:
     return int(np.sum(wrong & few))
 
 
-def oracle_pairs(pair) -> tuple[int, int, int]:
+def oracle_pairs(pair) -> tuple[int, int, int, int, int]:
     """Correct and wrong pairs of the oracle association (the fit-by-ids transform, the agents'
-    covariances, q's density over its hull, π = 1/2), and the wrong ones on rarely seen trees."""
+    covariances, q's density over its hull, π = 1/2), the wrong ones on rarely seen trees, and the
+    correct and wrong pairs of the transform oracle (``consensus``'s own association at that transform,
+    with the agents' covariances)."""
     density = len(pair.q) / ConvexHull(pair.q).volume
     pairs = oracle_association(pair.p, pair.q, pair.theta, pair.t, pair.cov_p, pair.cov_q, density, 0.5)
     correct = int(np.sum(pair.ids_p[pairs[:, 0]] == pair.ids_q[pairs[:, 1]]))
-    return correct, len(pairs) - correct, wrong_on_few_sightings(pair, pairs[:, 0], pairs[:, 1])
+    known = transform_oracle_association(pair.p, pair.q, pair.theta, pair.t, pair.sigma, pair.cov_p, pair.cov_q)
+    known_correct = int(np.sum(pair.ids_p[known[:, 0]] == pair.ids_q[known[:, 1]]))
+    return (correct, len(pairs) - correct, wrong_on_few_sightings(pair, pairs[:, 0], pairs[:, 1]), known_correct,
+            len(known) - known_correct)
 
 
 def _fused_rows(merged: pd.DataFrame):
@@ -145,7 +152,8 @@ def table(trials: pd.DataFrame, examples: pd.DataFrame) -> pd.DataFrame:
         q, pair = quality(int(cut), source)
         trials.loc[rows.index, "map_rmse_p"] = q["p"]["rmse"]
         trials.loc[rows.index, "map_rmse_q"] = q["q"]["rmse"]
-        trials.loc[rows.index, ["oracle_correct", "oracle_wrong", "oracle_wrong_few"]] = oracle_pairs(pair)
+        trials.loc[rows.index, ["oracle_correct", "oracle_wrong", "oracle_wrong_few", "transform_oracle_correct",
+                                "transform_oracle_wrong"]] = oracle_pairs(pair)
         for i, row in rows.iterrows():
             ex = examples[(examples.cut == cut) & (examples.source == source) & (examples.method == row.method)
                           & (examples.use_cov == row.use_cov) & (examples.kind == "merged")]
