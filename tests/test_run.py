@@ -129,3 +129,5 @@ def test_victoria_park_preset_runs_real_data(tmp_path):
     t = table(*load_runs(tmp_path / "outputs" / "sweeps" / "victoria_park")).set_index("method")
     assert t.loc["consensus", "rot err vs its correct pairs' fit (deg)"] < 0.5
     assert 0 < t.loc["consensus", "fused RMSE (m)"] < 1
+    # Both oracles pair most of the 66 common trees of the reference maps.
+    assert t.loc["consensus", "oracle correct"] >= 56 and t.loc["consensus", "transform oracle correct"] >= 56
