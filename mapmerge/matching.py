@@ -337,21 +337,22 @@ def resolve_correspondences(vertices_p, vertices_q, log_lr):
     # live ones sharing its p and its q is exactly one the sequential greedy
     # keeps; keeping it kills its rivals. Conflicts are rare, so few rounds.
     won = np.zeros(contested.size, dtype=bool)
-    live = np.ones(contested.size, dtype=bool)
     taken_p, taken_q = np.zeros(int(cp.max()) + 1, dtype=bool), np.zeros(int(cq.max()) + 1, dtype=bool)
-    while live.any():
-        first = live & (rank == _first_rank(cp, rank, live)) & (rank == _first_rank(cq, rank, live))
-        won |= first
-        taken_p[cp[first]] = taken_q[cq[first]] = True
-        live &= ~taken_p[cp] & ~taken_q[cq]
+    live = np.arange(contested.size)  # shrinks each round: most candidates die in the first ones
+    while live.size:
+        lp, lq, lr = cp[live], cq[live], rank[live]
+        first = (lr == _first_rank(lp, lr)) & (lr == _first_rank(lq, lr))
+        won[live[first]] = True
+        taken_p[lp[first]] = taken_q[lq[first]] = True
+        live = live[~taken_p[lp] & ~taken_q[lq]]
     keep[contested] = won
     return uniq, keep, all_votes
 
 
-def _first_rank(landmark: np.ndarray, rank: np.ndarray, live: np.ndarray) -> np.ndarray:
-    """For each candidate, the best rank among live candidates of its landmark."""
+def _first_rank(landmark: np.ndarray, rank: np.ndarray) -> np.ndarray:
+    """For each candidate, the best rank among the candidates of its landmark."""
     best = np.full(int(landmark.max()) + 1, np.iinfo(np.int64).max)
-    np.minimum.at(best, landmark[live], rank[live])
+    np.minimum.at(best, landmark, rank)
     return best[landmark]
 
 
