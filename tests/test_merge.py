@@ -210,3 +210,14 @@ def test_bend_turns_the_far_part_rigidly_about_a_hinge():
     for bad, match in (({"fraction": 1.0}, "fraction"), ({"direction": [0.0, 0.0]}, "direction")):
         with pytest.raises(ValueError, match=match):
             mm.simulate.bend(sc.q, 0.1, **{"fraction": 0.4, **bad})
+
+
+def test_bent_driver_counts_second_matches():
+    from experiments.bent import cell, main
+
+    rigid = cell("interleaved", 0.0, 20.0, 0.0, 3)
+    bent = cell("strip", 0.0, 20.0, 16.0, 3)
+    assert rigid["matched"] == 3 and rigid["second_match"] == 0
+    assert bent["second_match"] >= 2 and bent["correct_share"] > 0.8 and bent["max_displacement_sigmas"] > 15
+    with pytest.raises(SystemExit, match="--pairs"):
+        main(["--pairs", "0"])
