@@ -240,16 +240,23 @@ def merge_maps(P, Q, sigma=None, tau=DEFAULT_TAU, method="consensus", objective=
         On invalid maps, ``sigma``, ``tau``, ``method``, ``objective`` or
         variances.
     """
-    P = check_points(P, "P")
-    Q = check_points(Q, "Q")
+    P, Q, sigma, cov_p, cov_q = _check_pair(P, Q, sigma, cov_p, cov_q)
+    return _merge(P[None], Q[None], np.array([sigma]), tau, method, objective,
+                  None if cov_p is None else cov_p[None], None if cov_q is None else cov_q[None], rng).result(0)
+
+
+def _check_pair(P, Q, sigma, cov_p, cov_q):
+    """One map pair's maps, covariances and σ (``pooled_sigma`` when None), checked as ``merge_maps`` takes them."""
+    P, Q = check_points(P, "P"), check_points(Q, "Q")
     cov_p, cov_q = check_covariances(cov_p, len(P), "cov_p"), check_covariances(cov_q, len(Q), "cov_q")
     if sigma is None:
         if cov_p is None or cov_q is None:
             raise ValueError("sigma is needed unless cov_p and cov_q give every landmark's covariance")
         sigma = pooled_sigma(cov_p, cov_q)
     sigma = check_sigma(sigma)
-    return _merge(P[None], Q[None], np.array([sigma]), tau, method, objective,
-                  None if cov_p is None else cov_p[None], None if cov_q is None else cov_q[None], rng).result(0)
+    if (cov_p is None) != (cov_q is None):
+        raise ValueError("cov_p and cov_q must be given together")
+    return P, Q, sigma, cov_p, cov_q
 
 
 def _merge(P, Q, sigma, tau, method, objective, cov_p, cov_q, rng) -> MergeBatch:
@@ -317,9 +324,9 @@ def residual_match(P, Q, result: MergeResult, sigma=None, tau=DEFAULT_TAU, cov_p
     overlap moved rigidly against the rest. The merge then aligned the
     larger part, and the common landmarks of the other part appear twice in
     its combined map. (After a method that can merge by chance, such as
-    ``"paper"``, a second match may instead be the right one.) Too few landmarks left in the bent part (a handful)
-    hold no significant match, so "no second match" does not prove a map
-    rigid.
+    ``"paper"``, a second match may instead be the right one.) Too few
+    landmarks left in the bent part (a handful) hold no significant match,
+    so "no second match" does not prove a map rigid.
 
     Parameters
     ----------
@@ -342,13 +349,7 @@ def residual_match(P, Q, result: MergeResult, sigma=None, tau=DEFAULT_TAU, cov_p
         On invalid maps, ``sigma``, ``tau`` or covariances, or a ``result``
         that is not a matched merge of maps this size.
     """
-    P, Q = check_points(P, "P"), check_points(Q, "Q")
-    cov_p, cov_q = check_covariances(cov_p, len(P), "cov_p"), check_covariances(cov_q, len(Q), "cov_q")
-    if (cov_p is None) != (cov_q is None):
-        raise ValueError("cov_p and cov_q must be given together")
-    if sigma is None and cov_p is None:
-        raise ValueError("sigma is needed unless cov_p and cov_q give every landmark's covariance")
-    sigma = check_sigma(pooled_sigma(cov_p, cov_q) if sigma is None else sigma)
+    P, Q, sigma, cov_p, cov_q = _check_pair(P, Q, sigma, cov_p, cov_q)
     resolve_log_tau(tau)
     if not result.matched:
         raise ValueError("result must be a matched merge (result.matched is False)")
