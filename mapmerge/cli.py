@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 
 import numpy as np
 
@@ -59,9 +60,31 @@ def summary(res) -> dict:
     return out
 
 
+def check_outputs(args) -> None:
+    """Refuse, before any work, outputs that cannot be written: a missing directory, an input file
+    overwritten, a plot format matplotlib cannot write."""
+    inputs = {Path(name).resolve() for name in (args.map_a, args.map_b)}
+    for option, name in (("--output", args.output), ("--plot", args.plot)):
+        if name is None:
+            continue
+        path = Path(name)
+        if not path.resolve().parent.is_dir():
+            raise ValueError(f"{option}: directory {str(path.parent)!r} does not exist")
+        if path.resolve() in inputs:
+            raise ValueError(f"{option}: {name} is an input map; write the result to another file")
+    if args.plot is not None:
+        from matplotlib.figure import Figure
+
+        formats = Figure().canvas.get_supported_filetypes()
+        if Path(args.plot).suffix.lower().lstrip(".") not in formats:
+            raise ValueError(f"--plot: {args.plot} must end in one of "
+                             + ", ".join(f".{f}" for f in sorted(formats)))
+
+
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     try:
+        check_outputs(args)
         map_p, map_q = read_map(args.map_a), read_map(args.map_b)
         for landmarks in (map_p, map_q):  # a map's geometry errors named by its file, not by P / Q
             check_points(landmarks.points, f"{landmarks.source}:")
@@ -86,11 +109,15 @@ def main(argv=None) -> int:
     info["second_match"] = ({"pairs": int(len(second.pairs)),
                              "rotation_offset_deg": float(np.degrees(second.rotation_offset))}
                             if second.matched else None)
-    info["output"] = str(write_map(res, args.output, map_p, map_q))
-    if args.plot:
-        from .plotting import plot_merge
+    try:
+        info["output"] = str(write_map(res, args.output, map_p, map_q))
+        if args.plot:
+            from .plotting import plot_merge
 
-        info["plot"] = str(plot_merge(res, map_p.points, map_q.points, args.plot))
+            info["plot"] = str(plot_merge(res, map_p.points, map_q.points, args.plot))
+    except OSError as exc:  # e.g. no permission to write
+        print(f"mapmerge: error: cannot write {exc.filename or args.output}: {exc.strerror or exc}", file=sys.stderr)
+        return 2
     if args.json:
         print(json.dumps(info))
     else:

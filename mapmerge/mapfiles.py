@@ -73,7 +73,7 @@ def read_map(source) -> LandmarkMap:
     MapFileError
         One line naming the file and what is wrong: missing file or column,
         a non-numeric or missing cell, fewer than 3 rows, a covariance that
-        is not positive definite.
+        is not positive definite, an id given to two rows.
     """
     import pandas as pd  # here, not at the top: ``import mapmerge`` need not load pandas
 
@@ -121,6 +121,14 @@ def read_map(source) -> LandmarkMap:
             raise MapFileError(f"{name}: row {bad[0] + 1}: sigma must be > 0")
         cov = (values["sigma"] ** 2)[:, None, None] * np.eye(2)
     ids = table["id"].to_numpy() if "id" in table.columns else None
+    if ids is not None:
+        # An id names one landmark: a repeated one would join two rows of the combined map to one name.
+        named = pd.Series(ids).astype(str).str.strip()
+        repeated = np.flatnonzero(named.duplicated(keep=False).to_numpy() & (named != "").to_numpy())
+        if repeated.size:
+            rows = np.flatnonzero(named.to_numpy() == named.iloc[repeated[0]])
+            raise MapFileError(f"{name}: id {named.iloc[repeated[0]]!r} is repeated (rows {rows[0] + 1} and "
+                               f"{rows[1] + 1}); ids must be unique")
     return LandmarkMap(points=np.column_stack([values["x"], values["y"]]), ids=ids, cov=cov, source=name)
 
 

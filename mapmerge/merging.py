@@ -351,6 +351,8 @@ def residual_match(P, Q, result: MergeResult, sigma=None, tau=DEFAULT_TAU, cov_p
     """
     P, Q, sigma, cov_p, cov_q = _check_pair(P, Q, sigma, cov_p, cov_q)
     resolve_log_tau(tau)
+    if not isinstance(result, MergeResult):
+        raise ValueError(f"result must be the MergeResult of merge_maps(P, Q, ...), got {type(result).__name__}")
     if not result.matched:
         raise ValueError("result must be a matched merge (result.matched is False)")
     if np.any(result.pairs[:, 0] >= len(P)) or np.any(result.pairs[:, 1] >= len(Q)):

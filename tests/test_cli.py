@@ -79,6 +79,7 @@ def test_unrelated_maps_exit_1_and_write_nothing(tmp_path, capsys):
     # Errors of the maps' geometry name the file, not the library's argument.
     ("x,y\n0,0\n1,1\n2,2\n", "bad.csv: points are all collinear"),
     ("x,y\n0,0\n1,0\n0,1\n1,0\n", "bad.csv: contains duplicate points"),
+    ("id,x,y\nA,0,0\nB,1,0\nA,0,1\n", "bad.csv: id 'A' is repeated (rows 1 and 3)"),
 ])
 def test_bad_files_give_one_line_and_exit_2(tmp_path, capsys, content, message):
     a, _, _ = _maps(tmp_path)
@@ -87,6 +88,34 @@ def test_bad_files_give_one_line_and_exit_2(tmp_path, capsys, content, message):
     assert main(["merge", str(a), str(bad), "--sigma", "0.02", "-o", str(tmp_path / "m.csv")]) == 2
     err = capsys.readouterr().err.strip()
     assert message in err and "\n" not in err and not (tmp_path / "m.csv").exists()
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["-o", "{tmp}/no/such/dir/m.csv"], "--output: directory"),
+    (["-o", "{tmp}/a.csv"], "--output: {tmp}/a.csv is an input map"),
+    (["-o", "{tmp}/m.csv", "--plot", "{tmp}/m.txt"], "--plot: {tmp}/m.txt must end in one of"),
+    (["-o", "{tmp}/m.csv", "--plot", "{tmp}/no/m.png"], "--plot: directory"),
+])
+def test_unwritable_outputs_are_refused_before_any_work(tmp_path, capsys, extra, message):
+    a, b, _ = _maps(tmp_path)
+    before = a.read_bytes()
+    assert main(["merge", str(a), str(b), "--sigma", "0.02", *[e.format(tmp=tmp_path) for e in extra]]) == 2
+    err = capsys.readouterr().err.strip()
+    assert message.format(tmp=tmp_path) in err and "\n" not in err
+    assert a.read_bytes() == before and not (tmp_path / "m.csv").exists()
+
+
+def test_a_failed_write_is_one_line_and_exit_2(tmp_path, capsys, monkeypatch):
+    import mapmerge.cli
+
+    def refuse(*args, **kwargs):
+        raise PermissionError(13, "Permission denied", str(tmp_path / "m.csv"))
+
+    monkeypatch.setattr(mapmerge.cli, "write_map", refuse)
+    a, b, _ = _maps(tmp_path)
+    assert main(["merge", str(a), str(b), "--sigma", "0.02", "-o", str(tmp_path / "m.csv")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == f"mapmerge: error: cannot write {tmp_path / 'm.csv'}: Permission denied"
 
 
 def test_read_map_takes_a_dataframe_and_covariances():

@@ -191,6 +191,8 @@ def test_residual_match_rejects_bad_input():
     assert first.matched and not unmatched.matched
     with pytest.raises(ValueError, match="result must be a matched merge"):
         mm.residual_match(sc.p, sc.q, unmatched, sc.sigma)
+    with pytest.raises(ValueError, match="result must be the MergeResult of merge_maps"):
+        mm.residual_match(sc.p, sc.q, (first.theta, first.t), sc.sigma)
     with pytest.raises(ValueError, match="pass the maps it merged"):
         mm.residual_match(sc.p[:10], sc.q, first, sc.sigma)
     with pytest.raises(ValueError, match="tau"):
