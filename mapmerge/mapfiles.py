@@ -152,8 +152,10 @@ def combined_table(result: MergeResult, map_p: LandmarkMap | None = None,
 
 
 def write_map(result: MergeResult, path, map_p: LandmarkMap | None = None, map_q: LandmarkMap | None = None):
-    """Write the combined map of ``result`` (``combined_table``) as CSV, or TSV for a ``.tsv`` name."""
+    """Write the combined map of ``result`` (``combined_table``) as CSV, or TSV for a ``.tsv`` name.
+
+    Numbers are written in full (the shortest text that reads back as the same
+    float): map coordinates such as UTM eastings or degrees need every digit."""
     path = Path(path)
-    combined_table(result, map_p, map_q).to_csv(path, index=False, sep="\t" if path.suffix.lower() == ".tsv" else ",",
-                                                float_format="%.10g")
+    combined_table(result, map_p, map_q).to_csv(path, index=False, sep="\t" if path.suffix.lower() == ".tsv" else ",")
     return path

@@ -40,6 +40,9 @@ def test_merge_writes_the_combined_map_and_a_json_summary(tmp_path, capsys):
     assert (fused.id_p == fused.id_q).all()  # every fused row joins the same landmark
     assert {"x", "y", "origin", "index_p", "index_q", "sxx", "sxy", "syy"} <= set(merged.columns)
     assert plot.stat().st_size > 10_000
+    # Written in full: the file reads back as the library's combined map, bit for bit.
+    res = mm.merge_maps(mm.read_map(a).points, mm.read_map(b).points, 0.02)
+    np.testing.assert_array_equal(merged[["x", "y"]].to_numpy(), res.merged)
 
 
 def test_a_bent_map_merges_with_a_warning_naming_the_second_match(tmp_path, capsys):
