@@ -53,3 +53,20 @@ def test_groth_on_a_batch_equals_each_map_pair_alone():
         assert res.n_conflicts == alone.n_conflicts and res.matched == alone.matched
         found += res.matched
     assert found >= 6
+
+
+def test_groth_on_a_large_map_runs_in_slices_and_refuses_beyond_its_pair_limit(monkeypatch):
+    from mapmerge.baselines import groth
+
+    sc = mm.simulate.make_pair(300, 0.75, 30, rng=2)  # about 600 x 600 triangles: the sliced path
+    sliced = mm.merge_maps(sc.p, sc.q, sc.sigma, method="groth")
+    monkeypatch.setattr(groth, "BLOCK_PAIRS", 10**7)  # the whole map pair in one block
+    whole = mm.merge_maps(sc.p, sc.q, sc.sigma, method="groth")
+    for a, b in ((sliced.triangle_pairs, whole.triangle_pairs), (sliced.triangle_log_lr, whole.triangle_log_lr),
+                 (sliced.pairs, whole.pairs), (sliced.t, whole.t)):
+        np.testing.assert_array_equal(a, b)
+    assert sliced.matched and len(sliced.triangle_pairs) > 10_000
+    # Beyond the limit of passing pairs: one line naming the method and the way out, not an exhausted memory.
+    monkeypatch.setattr(groth, "GROTH_MAX_PAIRS", 5_000)
+    with pytest.raises(ValueError, match=r"method 'groth': over 5,000 triangle pairs .* use method='consensus'"):
+        mm.merge_maps(sc.p, sc.q, sc.sigma, method="groth")

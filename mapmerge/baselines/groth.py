@@ -29,6 +29,12 @@ GROTH_EPS_SIGMAS = 3.0
 GROTH_MAX_RATIO = 10.0
 #: Outlier gate on the fitted correspondences (χ²₂ tail probability).
 GROTH_GATE_P = 1e-3
+#: Triangle pairs passing the invariant test of one map pair beyond which the
+#: method refuses (a ValueError) rather than exhaust memory: every passing pair
+#: votes and is kept, at about 480 bytes each (so about 10 GB at the limit).
+#: The count grows like n² (about 0.16 n² at 30 dB: 4.9·10⁶ at 3,000
+#: landmarks per map, 2.4 GB; 6.5·10⁷ at 10⁴; 6.5·10⁹ at 10⁵).
+GROTH_MAX_PAIRS = 2 * 10**7
 
 
 def _invariants(coords, eps):
@@ -66,22 +72,32 @@ def groth_pairs(P, Q, sigma, tri_p: TriangleBatch, tri_q: TriangleBatch):
     eps = GROTH_EPS_SIGMAS * sigma
     Rp, Cp, tRp, tCp, sp = _invariants(tri_p.coords(), eps[tri_p.trial])
     Rq, Cq, tRq, tCq, sq = _invariants(tri_q.coords(), eps[tri_q.trial])
-    # Every p triangle against every q triangle of its own map pair, a block of map pairs at a time.
+    # Every p triangle against every q triangle of its own map pair, a block of map pairs at a time;
+    # a large map pair alone, a slice of its p triangles at a time (row-major order either way).
     tp, tq = int(tri_p.count.max(initial=0)), int(tri_q.count.max(initial=0))
     block = max(1, BLOCK_PAIRS // max(tp * tq, 1))
+    rows_per = tp if tp * tq <= BLOCK_PAIRS else max(1, 16 * BLOCK_PAIRS // tq)
     found = []
     for a in range(0, B, block):
         maps = np.arange(a, min(a + block, B))
-        rows, cols = _padded_rows(tri_p, maps, tp), _padded_rows(tri_q, maps, tq)
-        Rr, Cr, tRr, tCr, sr = (x[rows][:, :, None] for x in (Rp, Cp, tRp, tCp, sp))
-        Rc, Cc, tRc, tCc, sc = (x[cols][:, None, :] for x in (Rq, Cq, tRq, tCq, sq))
-        ok = (
-            (rows[:, :, None] >= 0) & (cols[:, None, :] >= 0)
-            & ((Rr - Rc) ** 2 < tRr + tRc) & ((Cr - Cc) ** 2 < tCr + tCc) & (sr == sc)
-            & (Rr < GROTH_MAX_RATIO) & (Rc < GROTH_MAX_RATIO)
-        )
-        k, i, j = np.nonzero(ok)
-        found.append((maps[k], i, j))
+        cols = _padded_rows(tri_q, maps, tq)
+        n_found = 0
+        for r in range(0, max(tp, 1), rows_per):
+            rows = _padded_rows(tri_p, maps, tp)[:, r:r + rows_per]
+            Rr, Cr, tRr, tCr, sr = (x[rows][:, :, None] for x in (Rp, Cp, tRp, tCp, sp))
+            Rc, Cc, tRc, tCc, sc = (x[cols][:, None, :] for x in (Rq, Cq, tRq, tCq, sq))
+            ok = (
+                (rows[:, :, None] >= 0) & (cols[:, None, :] >= 0)
+                & ((Rr - Rc) ** 2 < tRr + tRc) & ((Cr - Cc) ** 2 < tCr + tCc) & (sr == sc)
+                & (Rr < GROTH_MAX_RATIO) & (Rc < GROTH_MAX_RATIO)
+            )
+            k, i, j = np.nonzero(ok)
+            found.append((maps[k], r + i, j))
+            n_found += len(k)
+            if n_found > GROTH_MAX_PAIRS * len(maps):
+                raise ValueError(f"method 'groth': over {GROTH_MAX_PAIRS:,} triangle pairs of one map pair "
+                                 f"({tp:,} x {tq:,} triangles) pass its invariant test and all would vote "
+                                 "(about 480 bytes each); Groth's matcher is for small maps: use method='consensus'")
     tri_trial, i, j = (np.concatenate(v).astype(np.intp) for v in zip(*found))
     tri_pairs = np.stack([i, j], axis=1)
     vp, vq = tri_p.vertices[tri_p.offsets[tri_trial] + i], tri_q.vertices[tri_q.offsets[tri_trial] + j]
