@@ -32,8 +32,9 @@ GROTH_GATE_P = 1e-3
 #: Triangle pairs passing the invariant test of one map pair beyond which the
 #: method refuses (a ValueError) rather than exhaust memory: every passing pair
 #: votes and is kept, at about 480 bytes each (so about 10 GB at the limit).
-#: The count grows like n² (about 0.16 n² at 30 dB: 4.9·10⁶ at 3,000
-#: landmarks per map, 2.4 GB; 6.5·10⁷ at 10⁴; 6.5·10⁹ at 10⁵).
+#: The count grows like n² (at 30 dB 3.7·10⁵ at 1,000 landmarks per map,
+#: 4.9·10⁶ at 3,000 (2.4 GB), 6.5·10⁷ at 10⁴: the limit is reached near
+#: 6,000 landmarks per map).
 GROTH_MAX_PAIRS = 2 * 10**7
 
 
