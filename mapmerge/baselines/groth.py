@@ -81,10 +81,10 @@ def groth_pairs(P, Q, sigma, tri_p: TriangleBatch, tri_q: TriangleBatch):
     found = []
     for a in range(0, B, block):
         maps = np.arange(a, min(a + block, B))
-        cols = _padded_rows(tri_q, maps, tq)
+        all_rows, cols = _padded_rows(tri_p, maps, tp), _padded_rows(tri_q, maps, tq)
         n_found = 0
         for r in range(0, max(tp, 1), rows_per):
-            rows = _padded_rows(tri_p, maps, tp)[:, r:r + rows_per]
+            rows = all_rows[:, r:r + rows_per]
             Rr, Cr, tRr, tCr, sr = (x[rows][:, :, None] for x in (Rp, Cp, tRp, tCp, sp))
             Rc, Cc, tRc, tCc, sc = (x[cols][:, None, :] for x in (Rq, Cq, tRq, tCq, sq))
             ok = (
