@@ -93,6 +93,9 @@ def read_map(source) -> LandmarkMap:
             raise MapFileError(f"{name}: not a CSV/TSV table ({str(exc).splitlines()[0]})") from None
     table = table.rename(columns=lambda c: str(c).strip().lower())
     missing = [c for c in ("x", "y") if c not in table.columns]
+    if missing and len(table.columns) == 1 and ";" in str(table.columns[0]):
+        raise MapFileError(f"{name}: columns separated by ';'; map files are comma- or tab-separated "
+                           "(with a decimal point)")
     if missing:
         raise MapFileError(f"{name}: missing column {', '.join(missing)} (have: {', '.join(map(str, table.columns))})")
     if len(table) < 3:

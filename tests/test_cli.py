@@ -83,6 +83,7 @@ def test_unrelated_maps_exit_1_and_write_nothing(tmp_path, capsys):
     ("x,y\n0,0\n1,1\n2,2\n", "bad.csv: points are all collinear"),
     ("x,y\n0,0\n1,0\n0,1\n1,0\n", "bad.csv: contains duplicate points"),
     ("id,x,y\nA,0,0\nB,1,0\nA,0,1\n", "bad.csv: id 'A' is repeated (rows 1 and 3)"),
+    ("x;y\n0;0\n1;0\n0;1\n", "bad.csv: columns separated by ';'"),
 ])
 def test_bad_files_give_one_line_and_exit_2(tmp_path, capsys, content, message):
     a, _, _ = _maps(tmp_path)
