@@ -62,7 +62,7 @@ def summary(res) -> dict:
 
 def check_outputs(args) -> None:
     """Refuse, before any work, outputs that cannot be written: a missing directory, an input file
-    overwritten, a plot format matplotlib cannot write."""
+    overwritten, a table format other than CSV/TSV, a plot format matplotlib cannot write."""
     inputs = {Path(name).resolve() for name in (args.map_a, args.map_b)}
     for option, name in (("--output", args.output), ("--plot", args.plot)):
         if name is None:
@@ -72,6 +72,8 @@ def check_outputs(args) -> None:
             raise ValueError(f"{option}: directory {str(path.parent)!r} does not exist")
         if path.resolve() in inputs:
             raise ValueError(f"{option}: {name} is an input map; write the result to another file")
+    if Path(args.output).suffix.lower() not in (".csv", ".tsv", ".txt"):
+        raise ValueError(f"--output: {args.output} must end in .csv, .tsv (tab-separated) or .txt")
     if args.plot is not None:
         from matplotlib.figure import Figure
 

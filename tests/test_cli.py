@@ -98,6 +98,7 @@ def test_bad_files_give_one_line_and_exit_2(tmp_path, capsys, content, message):
     (["-o", "{tmp}/no/such/dir/m.csv"], "--output: directory"),
     (["-o", "{tmp}/a.csv"], "--output: {tmp}/a.csv is an input map"),
     (["-o", "{tmp}/m.csv", "--plot", "{tmp}/m.txt"], "--plot: {tmp}/m.txt must end in one of"),
+    (["-o", "{tmp}/m.xlsx"], "--output: {tmp}/m.xlsx must end in .csv, .tsv (tab-separated) or .txt"),
     (["-o", "{tmp}/m.csv", "--plot", "{tmp}/no/m.png"], "--plot: directory"),
 ])
 def test_unwritable_outputs_are_refused_before_any_work(tmp_path, capsys, extra, message):
