@@ -226,9 +226,44 @@ def prediction_var(points: np.ndarray, alignment: Alignment) -> np.ndarray:
     With G = [R J x, I] the Jacobian in (θ, t), ½ tr(G Σ Gᵀ) =
     ½ (‖x‖² Σ_θθ + 2 (R J x)·Σ_θt + tr Σ_tt).
     """
-    cov = alignment.cov
-    rjx = points @ (rotation(alignment.theta) @ ROT90).T
-    return 0.5 * (np.sum(points**2, axis=-1) * cov[0, 0] + 2 * rjx @ cov[0, 1:] + cov[1, 1] + cov[2, 2])
+    return prediction_vars(points[None], np.array([alignment.theta]), alignment.cov[None])[0]
+
+
+def prediction_vars(points: np.ndarray, theta: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """``prediction_var`` under F fits at once.
+
+    ``theta`` (F,) and ``cov`` (F, 3, 3) are the fits' rotations and (θ, t)
+    covariances; ``points`` (F or 1, ..., 2) are fit f's points in row f (or
+    one set for all). Returns (F, ...).
+    """
+    c, s = np.cos(theta), np.sin(theta)
+    # (R J x)·Σ_θt with R J = [[-s, -c], [c, -s]], as one coefficient per coordinate of x.
+    a = -s * cov[:, 0, 1] + c * cov[:, 0, 2]
+    b = -c * cov[:, 0, 1] - s * cov[:, 0, 2]
+    shape = (-1,) + (1,) * (points.ndim - 2)
+    a, b, c00, trace_t = (v.reshape(shape) for v in (a, b, cov[:, 0, 0], cov[:, 1, 1] + cov[:, 2, 2]))
+    x0, x1 = points[..., 0], points[..., 1]
+    return 0.5 * ((x0**2 + x1**2) * c00 + 2 * (x0 * a + x1 * b) + trace_t)
+
+
+def transform_covariances(trial: np.ndarray, mu: np.ndarray, theta: np.ndarray, sigma, fitted: np.ndarray):
+    """``transform_covariance`` of ragged fits at once: (F, 3, 3) for F = ``len(fitted)``.
+
+    ``mu`` (K, 2) are the fused landmarks of every fit, ``trial`` (K,) the
+    fit of each; ``theta`` (F,) and ``sigma`` (scalar or (F,)). Fits not
+    ``fitted`` get a covariance that is not to be read.
+    """
+    F = len(fitted)
+    c, s = np.cos(theta), np.sin(theta)
+    # b = R J Σµ with R J = [[-s, -c], [c, -s]].
+    sx, sy = np.bincount(trial, mu[:, 0], F), np.bincount(trial, mu[:, 1], F)
+    info = np.zeros((F, 3, 3))
+    info[:, 0, 0] = np.bincount(trial, mu[:, 0] ** 2 + mu[:, 1] ** 2, F)
+    info[:, 0, 1] = info[:, 1, 0] = -s * sx - c * sy
+    info[:, 0, 2] = info[:, 2, 0] = c * sx - s * sy
+    info[:, 1, 1] = info[:, 2, 2] = np.bincount(trial, minlength=F)
+    info[~fitted] = np.eye(3)  # any invertible matrix
+    return 2.0 * np.asarray(sigma, dtype=float).reshape(-1, 1, 1) ** 2 * np.linalg.inv(info)
 
 
 def align(P, Q, sigma=1.0) -> Alignment:
@@ -309,23 +344,10 @@ def reject_outliers_batch(P, Q, pair_trial, pairs, sigma, gate_p: float = 1e-3) 
             return keep
         k, ak, bk = pair_trial[idx], xp[idx], xq[idx]
         theta, t, _ = fit_transforms(k, ak, bk, B)
-        c, s = np.cos(theta), np.sin(theta)
         mu = 0.5 * (ak + rotate(-theta[k], (bk - t[k])[:, None, :])[:, 0])
-        # (θ, t) information with µ profiled out (transform_covariance), per map pair:
-        # b = R J Σµ, and R J = [[-s, -c], [c, -s]].
-        sx, sy = np.bincount(k, mu[:, 0], B), np.bincount(k, mu[:, 1], B)
-        info = np.zeros((B, 3, 3))
-        info[:, 0, 0] = np.bincount(k, mu[:, 0] ** 2 + mu[:, 1] ** 2, B)
-        info[:, 0, 1] = info[:, 1, 0] = -s * sx - c * sy
-        info[:, 0, 2] = info[:, 2, 0] = c * sx - s * sy
-        info[:, 1, 1] = info[:, 2, 2] = np.bincount(k, minlength=B)
-        info[~rejecting] = np.eye(3)  # map pairs done: any invertible matrix, unused
-        cov = 2.0 * sigma[:, None, None] ** 2 * np.linalg.inv(info)
-        # prediction_var of each p point, then its standardised residual.
-        ck, sk, cv = c[k], s[k], cov[k]
-        rjx = np.stack([-sk * ak[:, 0] - ck * ak[:, 1], ck * ak[:, 0] - sk * ak[:, 1]], axis=1)
-        pred = 0.5 * ((ak**2).sum(axis=1) * cv[:, 0, 0] + 2 * (rjx[:, 0] * cv[:, 0, 1] + rjx[:, 1] * cv[:, 0, 2])
-                      + cv[:, 1, 1] + cv[:, 2, 2])
+        cov = transform_covariances(k, mu, theta, sigma, rejecting)
+        # prediction_var of each p point under its own map pair's fit, then its standardised residual.
+        pred = prediction_vars(ak, theta[k], cov[k])
         resid = np.sum((bk - rotate(theta[k], ak[:, None, :])[:, 0] - t[k]) ** 2, axis=1)
         resid /= 2 * sigma[k] ** 2 + pred
         # The worst of each map pair (the first of equal worst): rows sorted by map pair, then residual down.

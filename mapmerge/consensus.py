@@ -43,8 +43,8 @@ from scipy.spatial import ConvexHull, cKDTree
 from scipy.special import chdtri, gammaln
 
 from .alignment import (
-    Alignment, align_pairs, fit_transforms, mapped_covariance, paired_transforms, prediction_var,
-    reject_outliers, rotation, wrap_angle,
+    align_pairs, fit_transforms, mapped_covariance, paired_transforms, prediction_var, prediction_vars,
+    reject_outliers, rotate, rotation, transform_covariances, wrap_angle,
 )
 from .exhaustive import bump_height, em_refine, inside_hull, pair_noise
 from .matching import (
@@ -190,12 +190,11 @@ def _refit_groups(vp, vq, P, Q, scores, sigma, pool, inliers, gate):
     if fitted.size == 0:
         return []
     cp, cq = P[vp[pool]], Q[vq[pool]]
-    var = []
-    for k in fitted:
-        sel = owner == k
-        al = Alignment.from_fit(theta[k], t[k], cost[k], P[kp[sel] % n_p], Q[kq[sel] % n_q], sigma)
-        var.append(2 * sigma**2 + prediction_var(cp, al))
-    inside = _gate_d2(cp, cq, theta[fitted], t[fitted], np.stack(var)) <= gate
+    # Every fit's (θ, t) covariance and prediction variance at once (``Alignment.cov``, ``prediction_var``).
+    mu = 0.5 * (P[kp % n_p] + rotate(-theta[owner], (Q[kq % n_q] - t[owner])[:, None, :])[:, 0])
+    cov = transform_covariances(owner, mu, theta, sigma, np.isin(np.arange(len(inliers)), fitted))[fitted]
+    var = 2 * sigma**2 + prediction_vars(cp[None], theta[fitted], cov)
+    inside = _gate_d2(cp, cq, theta[fitted], t[fitted], var) <= gate
     return [pool[row] for row in inside]
 
 
