@@ -185,14 +185,16 @@ def _refit_groups(vp, vq, P, Q, scores, sigma, pool, inliers, gate):
     uniq, keep, _ = resolve_correspondences(vp[members] + n_p * h[:, None], vq[members] + n_q * h[:, None],
                                          scores[members])
     (kp, kq), owner = uniq[keep].T, uniq[keep, 0] // n_p  # owner: the hypothesis of each correspondence
-    theta, t, cost = fit_transforms(owner, P[kp % n_p], Q[kq % n_q], len(inliers))
-    fitted = np.flatnonzero(np.bincount(owner, minlength=len(inliers)) >= 3)
+    xp, xq = P[kp % n_p], Q[kq % n_q]
+    theta, t, _ = fit_transforms(owner, xp, xq, len(inliers))
+    enough = np.bincount(owner, minlength=len(inliers)) >= 3
+    fitted = np.flatnonzero(enough)
     if fitted.size == 0:
         return []
     cp, cq = P[vp[pool]], Q[vq[pool]]
     # Every fit's (θ, t) covariance and prediction variance at once (``Alignment.cov``, ``prediction_var``).
-    mu = 0.5 * (P[kp % n_p] + rotate(-theta[owner], (Q[kq % n_q] - t[owner])[:, None, :])[:, 0])
-    cov = transform_covariances(owner, mu, theta, sigma, np.isin(np.arange(len(inliers)), fitted))[fitted]
+    mu = 0.5 * (xp + rotate(-theta[owner], (xq - t[owner])[:, None, :])[:, 0])
+    cov = transform_covariances(owner, mu, theta, sigma, enough)[fitted]
     var = 2 * sigma**2 + prediction_vars(cp[None], theta[fitted], cov)
     inside = _gate_d2(cp, cq, theta[fitted], t[fitted], var) <= gate
     return [pool[row] for row in inside]
