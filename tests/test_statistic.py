@@ -276,3 +276,35 @@ def test_outlier_rejection_of_many_map_pairs_at_once_follows_the_rule_per_pair(r
         np.testing.assert_array_equal(reject_outliers(P[b], Q[b], parts[b], sigma[b]), expected)
         dropped += len(parts[b]) - len(expected)
     assert dropped > 50  # the rule had work to do
+
+
+def test_many_fits_covariances_and_prediction_variances_equal_one_fit_at_a_time(rng):
+    """The vectorised (θ, t) covariances and prediction variances of ragged fits (consensus's refits,
+    Groth's rejection) equal each fit's own ``Alignment.cov`` and ½ tr(G Σ Gᵀ), G = [R J x, I]."""
+    from mapmerge.alignment import (ROT90, align_pairs, prediction_var, prediction_vars, rotation,
+                                    transform_covariances)
+
+    F, sigma = 7, 0.05
+    sizes = rng.integers(3, 12, F)
+    sizes[2] = 1  # too few pairs to fit: left out
+    fits, mu, owner = [], [], []
+    for f, m in enumerate(sizes):
+        P = rng.uniform(-5, 5, (m, 2))
+        Q = mm.alignment.rotate(rng.uniform(-np.pi, np.pi), P) + rng.normal(0, 3, 2) + rng.normal(0, sigma, (m, 2))
+        al = align_pairs(P, Q, sigma)
+        fits.append(al)
+        mu.append(al.mu)
+        owner.append(np.full(m, f))
+    fitted = sizes >= 3
+    theta = np.array([al.theta for al in fits])
+    cov = transform_covariances(np.concatenate(owner), np.concatenate(mu), theta, sigma, fitted)
+    x = rng.uniform(-8, 8, (4, 3, 2))
+    var = prediction_vars(x[None], theta[fitted], cov[fitted])
+    for k, f in enumerate(np.flatnonzero(fitted)):
+        al = fits[f]
+        np.testing.assert_allclose(cov[f], al.cov, rtol=1e-10, atol=1e-18)
+        G = np.concatenate([(x @ (rotation(al.theta) @ ROT90).T)[..., None], np.broadcast_to(np.eye(2), x.shape + (2,))],
+                           axis=-1)
+        expected = 0.5 * np.trace(G @ al.cov @ np.swapaxes(G, -1, -2), axis1=-2, axis2=-1)
+        np.testing.assert_allclose(var[k], expected, rtol=1e-10)
+        np.testing.assert_allclose(prediction_var(x, al), expected, rtol=1e-10)
