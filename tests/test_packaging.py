@@ -34,6 +34,14 @@ def test_readme_is_short_and_starts_with_the_two_commands():
     assert "make test" in ci
 
 
+def test_the_readme_example_prints_what_the_readme_shows(capsys):
+    text = (ROOT / "README.md").read_text()
+    code = re.search(r"```python\n(.*?)```", text, re.S).group(1)
+    shown = re.search(r"prints\n\n```\n(.*?)```", text, re.S).group(1)
+    exec(code, {})
+    assert capsys.readouterr().out == shown
+
+
 def test_the_paper_is_cited_by_title():
     for doc in ("README.md", "docs/method.md"):
         text = (ROOT / doc).read_text()
