@@ -153,24 +153,47 @@ def merge_batch(P, Q, sigma, tau=DEFAULT_TAU, method="consensus", objective="lr"
     sigma : float or (B,) array_like
     tau, method, objective, rng
         As for ``merge_maps`` (one threshold for every pair).
-    cov_p, cov_q : (B, n, 2, 2) array_like, optional
+    cov_p, cov_q : (B, n) or (B, n, 2, 2) array_like, optional
+        Per-landmark variances or covariances of each map pair's maps.
 
     Returns
     -------
     MergeBatch
         ``.result(b)`` is pair b's ``MergeResult``.
+
+    Raises
+    ------
+    ValueError
+        On maps that are not (B, n, 2) arrays of valid maps (naming the bad
+        one), a ``sigma`` or covariances not one per map pair, or any
+        argument ``merge_maps`` would refuse.
     """
     P, Q = _check_batch(P, "P"), _check_batch(Q, "Q")
     if len(P) != len(Q):
         raise ValueError(f"P and Q must hold the same number of maps, got {len(P)} and {len(Q)}")
-    sigma = np.broadcast_to(np.asarray(sigma, dtype=float), (len(P),)).copy()
+    try:
+        sigma = np.asarray(sigma, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"sigma must be a number or one number per map pair, got {sigma!r}") from None
+    if sigma.shape not in ((), (len(P),)):
+        raise ValueError(f"sigma must be a number or one per map pair, shape ({len(P)},), got shape {sigma.shape}")
+    sigma = np.broadcast_to(sigma, (len(P),)).copy()
     if not np.all(np.isfinite(sigma) & (sigma > 0)):
         raise ValueError("sigma must be positive and finite for every map pair")
-    if cov_p is not None:
-        cov_p = np.stack([check_covariances(c, P.shape[1], "cov_p") for c in np.asarray(cov_p, dtype=float)])
-    if cov_q is not None:
-        cov_q = np.stack([check_covariances(c, Q.shape[1], "cov_q") for c in np.asarray(cov_q, dtype=float)])
+    cov_p, cov_q = (None if cov is None else _check_batch_covariances(cov, maps, name)
+                    for cov, maps, name in ((cov_p, P, "cov_p"), (cov_q, Q, "cov_q")))
     return _merge(P, Q, sigma, tau, method, objective, cov_p, cov_q, rng)
+
+
+def _check_batch_covariances(cov, maps: np.ndarray, name: str) -> np.ndarray:
+    try:
+        cov = np.asarray(cov, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be an array of numbers") from None
+    if cov.ndim not in (2, 4) or len(cov) != len(maps):
+        raise ValueError(f"{name} must have shape (B, n) or (B, n, 2, 2) with B = {len(maps)} map pairs, "
+                         f"got {cov.shape}")
+    return np.stack([check_covariances(c, maps.shape[1], name) for c in cov])
 
 
 def pooled_sigma(cov_p, cov_q) -> float:
@@ -276,7 +299,8 @@ def _check_batch(maps, name: str) -> np.ndarray:
     try:
         arr = np.asarray(maps, dtype=float)
     except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a (B, n, 2) array of numbers") from None
+        raise ValueError(f"{name} must be a (B, n, 2) array of numbers: B maps of one size n "
+                         "(merge_maps takes maps of any sizes, one pair at a time)") from None
     if arr.ndim != 3 or arr.shape[2] != 2 or arr.shape[1] < 3:
         raise ValueError(f"{name} must have shape (B, n, 2) with n >= 3, got {arr.shape}")
     if not np.all(np.isfinite(arr)):

@@ -223,3 +223,26 @@ def test_bent_driver_counts_second_matches():
     assert bent["second_match"] >= 2 and bent["correct_share"] > 0.8 and bent["max_displacement_sigmas"] > 15
     with pytest.raises(SystemExit, match="--pairs"):
         main(["--pairs", "0"])
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"sigma": [0.1, 0.2]}, r"sigma must be a number or one per map pair, shape \(3,\), got shape \(2,\)"),
+    ({"sigma": [[0.1] * 3]}, r"sigma must be a number or one per map pair"),
+    ({"sigma": "x"}, r"sigma must be a number or one number per map pair, got 'x'"),
+    ({"cov_p": np.ones((2, 10)), "cov_q": np.ones((3, 10))}, r"cov_p must have shape \(B, n\) or \(B, n, 2, 2\) with B = 3"),
+    ({"cov_p": np.ones((3, 10)), "cov_q": np.ones((3, 9))}, r"cov_q must have shape \(10,\) or \(10, 2, 2\)"),
+])
+def test_merge_batch_names_a_sigma_or_covariances_not_one_per_map_pair(kwargs, match):
+    batch = mm.simulate.make_pairs(10, 0.75, 20, [0, 1, 2])
+    kwargs = {"sigma": batch.sigma, **kwargs}
+    with pytest.raises(ValueError, match=match):
+        mm.merge_batch(batch.p, batch.q, **kwargs)
+
+
+def test_merge_batch_takes_per_landmark_variances_as_merge_maps_does():
+    batch = mm.simulate.make_pairs(20, 0.75, 30, [0, 1])
+    var = np.full((2, 20), 1.0) * batch.sigma[:, None] ** 2
+    res = mm.merge_batch(batch.p, batch.q, batch.sigma, cov_p=var, cov_q=var)
+    for b in range(2):
+        one = mm.merge_maps(batch.p[b], batch.q[b], batch.sigma[b], cov_p=var[b], cov_q=var[b])
+        np.testing.assert_array_equal(res.result(b).merged, one.merged)
