@@ -54,3 +54,14 @@ __all__ = [
     "wrap_angle",
 ]
 __version__ = "0.2.0"
+
+#: Modules loaded on first use as ``mapmerge.<name>``: each imports what only it needs.
+_LAZY_MODULES = ("datasets", "plotting", "search", "consensus", "baselines", "cli")
+
+
+def __getattr__(name):
+    if name in _LAZY_MODULES:
+        import importlib
+
+        return importlib.import_module(f".{name}", __name__)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -18,6 +18,7 @@ import numpy as np
 
 from .alignment import Alignment, align_pairs, covariance_in_p_frame, rotate, wrap_angle
 from .combining import ONLY_Q
+from .result import MergeResult
 
 
 def _sorted_id_keys(ids: np.ndarray, vertices: np.ndarray, n_ids: int) -> np.ndarray:
@@ -159,10 +160,14 @@ def roc_curve(y_true, y_score):
     Raises
     ------
     ValueError
-        If the inputs differ in length or contain a non-finite score
-        (``-inf`` is allowed).
+        If the inputs differ in length, a label is not boolean (or 0/1) or
+        a score is NaN or ``+inf`` (``-inf`` is allowed).
     """
-    y_true = np.asarray(y_true, dtype=bool).ravel()
+    y_true = np.asarray(y_true).ravel()
+    if y_true.dtype != bool:
+        if not np.all(np.isin(y_true, (0, 1))):
+            raise ValueError(f"y_true must hold booleans or 0/1 labels, got values {np.unique(y_true)[:5].tolist()}")
+        y_true = y_true.astype(bool)
     y_score = np.asarray(y_score, dtype=float).ravel()
     if y_true.shape != y_score.shape:
         raise ValueError(f"y_true and y_score must have the same length, got {y_true.size} and {y_score.size}")
@@ -182,8 +187,10 @@ def roc_curve(y_true, y_score):
 
 
 def auc(fpr, tpr) -> float:
-    """Area under a curve by the trapezoid rule (ROC: ``auc(fpr, tpr)``)."""
+    """Area under a curve by the trapezoid rule (ROC: ``auc(fpr, tpr)``); NaN with under two points."""
     fpr, tpr = np.asarray(fpr, dtype=float), np.asarray(tpr, dtype=float)
+    if fpr.ndim != 1 or fpr.shape != tpr.shape:
+        raise ValueError(f"fpr and tpr must be 1-D and of the same length, got shapes {fpr.shape} and {tpr.shape}")
     if fpr.size < 2 or np.any(np.isnan(fpr)) or np.any(np.isnan(tpr)):
         return float("nan")
     return float(np.trapezoid(tpr, fpr))
@@ -221,6 +228,8 @@ def map_errors(scenario, result) -> dict:
         ``FOUND_RMS_SIGMAS``) and ``false_merge`` (matched maps that share
         no landmark); NaN errors when there is no match.
     """
+    if not isinstance(result, MergeResult):
+        raise ValueError(f"result must be the MergeResult of merge_maps, got {type(result).__name__}")
     c = result.combined
     origin = np.select([c.origin == "fused", c.origin == "p"], [0, 1], 2)
     out = errors_batch(

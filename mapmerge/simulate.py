@@ -324,6 +324,8 @@ def make_pairs(n_landmarks: int, overlap: float, snr_db: float, seeds, aspect: f
     ScenarioBatch
     """
     n, c = check_scenario(n_landmarks, overlap, snr_db, aspect, layout, p_detect, clutter, anisotropy)
+    if len(seeds) == 0:
+        raise ValueError("seeds must hold at least one seed (one per trial)")
     g = _geometry(n, c, aspect, layout, p_detect, clutter)
     B, m = len(seeds), n + g.k
     blocks = g.blocks + ([g.blocks[0]] if unrelated else []) + g.clutter

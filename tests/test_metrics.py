@@ -25,6 +25,19 @@ def test_roc_rejects_bad_input():
         metrics.roc_curve([True, False], [0.1])
     with pytest.raises(ValueError, match="NaN"):
         metrics.roc_curve([True, False], [np.nan, 0.1])
+    with pytest.raises(ValueError, match=r"y_true must hold booleans or 0/1 labels, got values \[2, 3\]"):
+        metrics.roc_curve([2, 3], [0.1, 0.2])
+    with pytest.raises(ValueError, match="fpr and tpr must be 1-D and of the same length"):
+        metrics.auc([0, 1], [0])
+    # 0/1 labels are booleans
+    assert all(np.array_equal(a, b) for a, b in zip(metrics.roc_curve([1, 0, 1], [0.3, 0.2, 0.1]),
+                                                    metrics.roc_curve([True, False, True], [0.3, 0.2, 0.1])))
+
+
+def test_map_errors_names_a_result_that_is_not_a_merge():
+    sc = mm.simulate.make_pair(20, 0.75, 30, rng=0)
+    with pytest.raises(ValueError, match="result must be the MergeResult of merge_maps, got str"):
+        metrics.map_errors(sc, "x")
 
 
 def test_oracle_tau_gives_zero_fp(rng):

@@ -6,6 +6,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -77,3 +79,13 @@ def test_import_mapmerge_leaves_heavy_modules_for_the_functions_that_need_them()
     code = "import sys, mapmerge; print(sorted(m for m in ('scipy.signal', 'pandas') if m in sys.modules))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
+
+
+def test_every_module_is_an_attribute_of_the_package():
+    """``mm.datasets`` works like ``mm.simulate`` (loaded on first use), and a typo is still an AttributeError."""
+    import mapmerge as mm
+
+    assert callable(mm.datasets.victoria_park) and callable(mm.plotting.plot_merge)
+    assert callable(mm.search.search_pairs) and callable(mm.consensus.consensus_merge)
+    with pytest.raises(AttributeError, match="has no attribute 'datasetz'"):
+        mm.datasetz

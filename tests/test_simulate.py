@@ -64,6 +64,11 @@ def test_bad_arguments(kwargs, match):
             mm.simulate.make_pairs(10, 0.75, 20, [1, kwargs["rng"]])
 
 
+def test_make_pairs_needs_a_seed():
+    with pytest.raises(ValueError, match=r"seeds must hold at least one seed \(one per trial\)"):
+        mm.simulate.make_pairs(10, 0.75, 20, [])
+
+
 def test_interleaved_layout_puts_unshared_landmarks_among_common_ones():
     for layout, inside in (("strip", 0), ("interleaved", 5)):
         sc = mm.simulate.make_pair(100, 0.75, 40, rng=5, layout=layout, p_detect=0.9)
