@@ -104,14 +104,19 @@ def assign(log_lr: np.ndarray, objective: str = "lr") -> np.ndarray:
         Rows ``(i, j)``: triangle i of p tentatively paired with j of q,
         sorted by i.
     """
-    rows, cols = linear_sum_assignment(lp_weight(log_lr, objective), maximize=True)
+    rows, cols = linear_sum_assignment(lp_weight(log_lr, check_objective(objective)), maximize=True)
     return np.stack([rows, cols], axis=1).astype(np.intp)
+
+
+def check_objective(objective: str) -> str:
+    """``objective`` if it is one of ``OBJECTIVES``, else a one-line ValueError."""
+    if objective not in OBJECTIVES:
+        raise ValueError(f"objective must be one of {OBJECTIVES}, got {objective!r}")
+    return objective
 
 
 def lp_weight(log_lr: np.ndarray, objective: str) -> np.ndarray:
     """What the LP maximises the sum of: Λ (``"lr"``) or log Λ (``"loglr"``)."""
-    if objective not in OBJECTIVES:
-        raise ValueError(f"objective must be one of {OBJECTIVES}, got {objective!r}")
     # Λ = exp(log Λ) underflows to 0 for hopeless pairs: they are then exact
     # ties at zero weight, which is what Σ Λ means for them.
     return np.exp(log_lr) if objective == "lr" else log_lr
@@ -191,8 +196,7 @@ def assign_sparse(log_lr: np.ndarray, pairs: np.ndarray, shape, objective: str =
     """
     from ortools.graph.python import min_cost_flow  # imported here: only large maps take this path
 
-    if objective not in OBJECTIVES:
-        raise ValueError(f"objective must be one of {OBJECTIVES}, got {objective!r}")
+    check_objective(objective)
     n_p, n_q = shape
     if pairs.shape[0] == 0:
         return np.empty((0, 2), dtype=np.intp)

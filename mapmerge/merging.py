@@ -27,7 +27,7 @@ from ._validation import check_covariances, check_geometry, check_points, check_
 from .alignment import wrap_angle
 from .baselines import astroalign as astroalign_baseline
 from .baselines import groth as groth_baseline
-from .matching import OBJECTIVES, TriangleMatch, match_triangles, resolve_correspondences, resolve_log_tau
+from .matching import TriangleMatch, check_objective, match_triangles, resolve_correspondences, resolve_log_tau
 from .result import MergeBatch, MergeResult, build_batch
 from .triangles import triangulate_batches
 
@@ -288,8 +288,7 @@ def _merge(P, Q, sigma, tau, method, objective, cov_p, cov_q, rng) -> MergeBatch
         raise ValueError("cov_p and cov_q must be given together")
     log_tau = resolve_log_tau(tau)
     get_method(method)
-    if objective not in OBJECTIVES:
-        raise ValueError(f"objective must be one of {OBJECTIVES}, got {objective!r}")
+    check_objective(objective)
     rng = check_rng(rng)
     match = match_stage(P, Q, sigma, method, objective, log_tau)
     return merge_at(P, Q, sigma, match, np.full(len(P), log_tau), method, cov_p, cov_q, rng)

@@ -103,3 +103,10 @@ def test_candidate_components_are_the_connected_components_of_the_candidate_grap
         truth = connected_components(graph, directed=False)[1][i]
         # The same partition of the candidates, whatever the numbering.
         assert np.array_equal(label[:, None] == label[None], truth[:, None] == truth[None])
+
+
+def test_the_lp_names_an_unknown_objective():
+    for solve in (lambda: assign(np.zeros((3, 3)), "max"),
+                  lambda: assign_sparse(np.zeros(2), np.array([[0, 0], [1, 1]]), (2, 2), "max")):
+        with pytest.raises(ValueError, match=r"objective must be one of \('lr', 'loglr'\), got 'max'"):
+            solve()

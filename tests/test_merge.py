@@ -124,6 +124,13 @@ def test_unrelated_maps_give_no_match():
         ({"objective": "max"}, "objective"),
         ({"rng": "seed"}, "rng must be None, a non-negative int"),
         ({"rng": -3}, "rng must be None, a non-negative int"),
+        ({"sigma": "wide"}, "sigma must be a positive number, got 'wide'"),
+        ({"cov_p": np.full(6, 0.01)}, "cov_p and cov_q must be given together"),
+        ({"cov_p": np.full(6, -0.01), "cov_q": np.full(6, 0.01)}, "cov_p must hold positive finite variances"),
+        ({"cov_p": "big", "cov_q": np.full(6, 0.01)}, r"cov_p must be \(n,\) variances or \(n, 2, 2\) covariances"),
+        ({"cov_p": np.tile([[1.0, 0.5], [0.0, 1.0]], (6, 1, 1)), "cov_q": np.full(6, 0.01)},
+         "cov_p must hold symmetric positive-definite 2x2 covariances"),
+        ({"cov_p": np.full(5, 0.01), "cov_q": np.full(6, 0.01)}, r"cov_p must have shape \(6,\) or \(6, 2, 2\)"),
     ],
 )
 def test_merge_maps_rejects_bad_input(rng, kwargs, match):
@@ -231,12 +238,19 @@ def test_bent_driver_counts_second_matches():
     ({"sigma": "x"}, r"sigma must be a number or one number per map pair, got 'x'"),
     ({"cov_p": np.ones((2, 10)), "cov_q": np.ones((3, 10))}, r"cov_p must have shape \(B, n\) or \(B, n, 2, 2\) with B = 3"),
     ({"cov_p": np.ones((3, 10)), "cov_q": np.ones((3, 9))}, r"cov_q must have shape \(10,\) or \(10, 2, 2\)"),
+    ({"cov_p": "big", "cov_q": np.ones((3, 10))}, "cov_p must be an array of numbers"),
+    ({"cov_p": np.ones((3, 10))}, "cov_p and cov_q must be given together"),
+    ({"sigma": [0.1, 0.0, 0.1]}, "sigma must be positive and finite for every map pair"),
+    ({"P": "maps"}, r"P must be a \(B, n, 2\) array of numbers: B maps of one size n"),
+    ({"P": np.zeros((3, 10, 3))}, r"P must have shape \(B, n, 2\) with n >= 3, got \(3, 10, 3\)"),
+    ({"Q": np.full((3, 10, 2), np.nan)}, "Q contains NaN or inf"),
+    ({"Q": mm.simulate.make_pairs(10, 0.75, 20, [0, 1]).q}, "P and Q must hold the same number of maps, got 3 and 2"),
 ])
-def test_merge_batch_names_a_sigma_or_covariances_not_one_per_map_pair(kwargs, match):
+def test_merge_batch_names_a_bad_argument(kwargs, match):
     batch = mm.simulate.make_pairs(10, 0.75, 20, [0, 1, 2])
-    kwargs = {"sigma": batch.sigma, **kwargs}
+    kwargs = {"P": batch.p, "Q": batch.q, "sigma": batch.sigma, **kwargs}
     with pytest.raises(ValueError, match=match):
-        mm.merge_batch(batch.p, batch.q, **kwargs)
+        mm.merge_batch(**kwargs)
 
 
 def test_merge_batch_takes_per_landmark_variances_as_merge_maps_does():
