@@ -7,8 +7,8 @@ A map file has one row per landmark and the columns
 - ``sxx``, ``sxy``, ``syy`` (optional): its 2x2 covariance, or ``sigma``
   (optional): its per-coordinate standard deviation.
 
-The separator is a comma, or a tab when the file name ends in ``.tsv`` or
-the header holds tabs.
+The file is UTF-8 text (a byte-order mark is fine); the separator is a
+comma, or a tab when the file name ends in ``.tsv`` or the header holds tabs.
 """
 
 from __future__ import annotations
@@ -84,12 +84,14 @@ def read_map(source) -> LandmarkMap:
         name = str(path)
         if not path.is_file():
             raise MapFileError(f"{name}: no such file")
-        with open(path) as fh:
-            header = fh.readline()
-        sep = "\t" if path.suffix.lower() == ".tsv" or "\t" in header else ","
         try:
-            table = pd.read_csv(path, sep=sep, dtype=str, keep_default_na=False)
-        except (pd.errors.ParserError, UnicodeDecodeError, pd.errors.EmptyDataError) as exc:
+            with open(path, encoding="utf-8") as fh:
+                header = fh.readline()
+            sep = "\t" if path.suffix.lower() == ".tsv" or "\t" in header else ","
+            table = pd.read_csv(path, sep=sep, dtype=str, keep_default_na=False, encoding="utf-8")
+        except UnicodeDecodeError as exc:
+            raise MapFileError(f"{name}: not UTF-8 text (byte {exc.start}); save the map as UTF-8 CSV") from None
+        except (pd.errors.ParserError, pd.errors.EmptyDataError) as exc:
             raise MapFileError(f"{name}: not a CSV/TSV table ({str(exc).splitlines()[0]})") from None
     table = table.rename(columns=lambda c: str(c).strip().lower())
     missing = [c for c in ("x", "y") if c not in table.columns]

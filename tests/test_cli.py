@@ -84,11 +84,14 @@ def test_unrelated_maps_exit_1_and_write_nothing(tmp_path, capsys):
     ("x,y\n0,0\n1,0\n0,1\n1,0\n", "bad.csv: contains duplicate points"),
     ("id,x,y\nA,0,0\nB,1,0\nA,0,1\n", "bad.csv: id 'A' is repeated (rows 1 and 3)"),
     ("x;y\n0;0\n1;0\n0;1\n", "bad.csv: columns separated by ';'"),
+    ("x,y,sxx,sxy,syy\n1,2,1,0,1\n3,4,1,2,1\n5,6,1,0,1\n", "bad.csv: row 2: covariance (sxx, sxy, syy) must be positive definite"),
+    ("", "bad.csv: not a CSV/TSV table"),
+    (b"\xff\xfex\x00,\x00y\x00", "bad.csv: not UTF-8 text (byte 0); save the map as UTF-8 CSV"),  # UTF-16
 ])
 def test_bad_files_give_one_line_and_exit_2(tmp_path, capsys, content, message):
     a, _, _ = _maps(tmp_path)
     bad = tmp_path / "bad.csv"
-    bad.write_text(content)
+    bad.write_bytes(content) if isinstance(content, bytes) else bad.write_text(content)
     assert main(["merge", str(a), str(bad), "--sigma", "0.02", "-o", str(tmp_path / "m.csv")]) == 2
     err = capsys.readouterr().err.strip()
     assert message in err and "\n" not in err and not (tmp_path / "m.csv").exists()
@@ -196,3 +199,17 @@ def test_the_user_guides_worked_example_prints_what_it_says(tmp_path, capsys, mo
     paper = json.loads(capsys.readouterr().out)
     assert (paper["pairs"], paper["conflicts"]) == (71, 29)
     assert round(np.degrees(abs(paper["theta"] - namespace["res"].theta)), 1) == 5.2
+
+
+def test_a_missing_map_file_is_one_line_and_exit_2(tmp_path, capsys):
+    a, _, _ = _maps(tmp_path)
+    assert main(["merge", str(a), str(tmp_path / "nowhere.csv"), "--sigma", "0.02", "-o", str(tmp_path / "m.csv")]) == 2
+    assert capsys.readouterr().err.strip() == f"mapmerge: error: {tmp_path / 'nowhere.csv'}: no such file"
+
+
+def test_a_map_saved_with_a_byte_order_mark_keeps_its_first_column(tmp_path):
+    """Spreadsheets often save UTF-8 with a BOM: the first header (here ``id``) must still be recognised."""
+    path = tmp_path / "bom.csv"
+    path.write_bytes("id,x,y\nA,0,0\nB,1,0\nC,0,1\n".encode("utf-8-sig"))
+    landmarks = mm.read_map(path)
+    assert list(landmarks.ids) == ["A", "B", "C"] and landmarks.points.shape == (3, 2)
