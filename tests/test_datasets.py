@@ -288,3 +288,35 @@ def test_min_sightings_keeps_only_trees_each_agent_confirmed():
     for bad in (0, 2.5, True):
         with pytest.raises(ValueError, match="min_sightings must be an integer >= 1"):
             victoria_park(cut=1500, min_sightings=bad)
+
+
+def _tiny_log(root, log=None, trajectory="0 0 0\n1 0 0\n", trees="5 1\n"):
+    """A two-pose, one-tree copy of the data files' formats (blank lines are allowed)."""
+    (root / "victoria_park.txt").write_text(log if log is not None else
+                                            "ODOMETRY 0 1 1 0 0 0.01 0 0 0.01 0 0.01\n\n"
+                                            "LANDMARK 1 7 4 1 0.1 0 0.1\n")
+    (root / "ISAM2_GT_victoriaPark.txt").write_text(trajectory)
+    (root / "ISAM2_GT_victoriaPark_lm.txt").write_text(trees)
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"log": "ODOMETRY 0 1 1 0 0 0.01 0 0 0.01 0 0.01\nODOMETRY 5 6 1 0 0 0.01 0 0 0.01 0 0.01\n"},
+     r"victoria_park.txt:2: odometry from pose 5 does not continue the chain at 1"),
+    ({"log": "ODOMETRY 0 1 1 0 0 0.01 0 0 0.01 0 0.01\nPOINT 1 2\n"}, r"victoria_park.txt:2: unknown record 'POINT' with 3 fields"),
+    ({"log": "ODOMETRY 0 1 1 0 0 0.01 0 0 0.01 0 0.01\nLANDMARK 9 7 4 1 0.1 0 0.1\n"}, "observation from unknown pose 9"),
+    ({"trajectory": "0 0 zero\n"}, r"ISAM2_GT_victoriaPark.txt is malformed"),
+    ({"trajectory": "0 0\n1 0\n"}, r"ISAM2_GT_victoriaPark.txt must have 3 columns, got 2"),
+])
+def test_a_malformed_data_file_is_named_with_its_line(tmp_path, change, message):
+    _tiny_log(tmp_path)
+    load_log(tmp_path)  # the tiny copy itself is well formed
+    _tiny_log(tmp_path, **change)
+    with pytest.raises(DatasetError, match=message):
+        load_log(tmp_path)
+
+
+def test_a_missing_trajectory_file_is_named(tmp_path):
+    _tiny_log(tmp_path)
+    (tmp_path / "ISAM2_GT_victoriaPark.txt").unlink()
+    with pytest.raises(DatasetError, match="Victoria Park file not found: .*ISAM2_GT_victoriaPark.txt"):
+        load_log(tmp_path)
