@@ -62,11 +62,29 @@ def test_fig3_preset_is_the_papers_grid():
         ("matcher.taus=[chi2:2]", "matcher.taus"),
         ("mc.backend=spark", "mc.backend"),
         ("+scenario.snrdb=30", "scenario.snrdb"),
+        ("scenario.kind=lidar", "scenario.kind"),
+        ("scenario.n_landmarks=4 scenario.overlap=0.5", "scenario.overlap"),
+        ("scenario.snr_db=inf", "scenario.snr_db"),
+        ("scenario.aspect=0", "scenario.aspect"),
+        ("scenario.layout=grid", "scenario.layout"),
+        ("scenario.p_detect=0", "scenario.p_detect"),
+        ("scenario.clutter=-1", "scenario.clutter"),
+        ("scenario.anisotropy=nan", "scenario.anisotropy"),
+        ("matcher.method=magic", "matcher.method"),
+        ("matcher.taus=[]", "matcher.taus"),
+        ("matcher.taus=[oracle,oracle]", "matcher.taus"),
+        ("mc.n_trials=0", "mc.n_trials"),
+        ("mc.seed=-1", "mc.seed"),
+        ("mc.address=tcp://host:8786", "mc.address"),
+        ("mc.n_trials=5 mc.examples=6", "mc.examples"),
+        ("scenario=victoria_park scenario.cut=0", "scenario.cut"),
+        ("scenario=victoria_park scenario.source=lidar", "scenario.source"),
+        ("scenario=victoria_park mc.n_trials=2", "mc.n_trials"),
     ],
 )
 def test_validate_names_the_key(override, key):
     with pytest.raises(ConfigError, match=key):
-        validate(compose_config([override]))
+        validate(compose_config(override.split()))
 
 
 @pytest.mark.parametrize(
