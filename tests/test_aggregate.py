@@ -162,3 +162,13 @@ def test_wilson_interval_matches_the_textbook_values():
     # 0 of 1,000: the upper bound is z²/(n + z²) = 0.00383; 50 %: 0.469-0.531.
     assert np.allclose([low[0], high[0]], [0.0, 0.003827], atol=1e-5)
     assert np.allclose([low[1], high[1]], [0.469, 0.531], atol=1e-3)
+
+
+def test_aggregating_a_directory_without_runs_is_one_line_and_exit_2(tmp_path, capsys):
+    from experiments.aggregate import main
+
+    with pytest.raises(SystemExit) as exit_:
+        main([str(tmp_path / "empty"), "--out", str(tmp_path / "out")])
+    assert exit_.value.code == 2
+    assert capsys.readouterr().err == f"error: no trials.parquet below {tmp_path / 'empty'}\n"
+    assert not (tmp_path / "out").exists()
