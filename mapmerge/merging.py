@@ -174,7 +174,7 @@ def merge_batch(P, Q, sigma, tau=DEFAULT_TAU, method="consensus", objective="lr"
     try:
         sigma = np.asarray(sigma, dtype=float)
     except (TypeError, ValueError):
-        raise ValueError(f"sigma must be a number or one number per map pair, got {sigma!r}") from None
+        raise ValueError(f"sigma must be a number or one per map pair, got {sigma!r}") from None
     if sigma.shape not in ((), (len(P),)):
         raise ValueError(f"sigma must be a number or one per map pair, shape ({len(P)},), got shape {sigma.shape}")
     sigma = np.broadcast_to(sigma, (len(P),)).copy()

@@ -235,7 +235,7 @@ def test_bent_driver_counts_second_matches():
 @pytest.mark.parametrize("kwargs, match", [
     ({"sigma": [0.1, 0.2]}, r"sigma must be a number or one per map pair, shape \(3,\), got shape \(2,\)"),
     ({"sigma": [[0.1] * 3]}, r"sigma must be a number or one per map pair"),
-    ({"sigma": "x"}, r"sigma must be a number or one number per map pair, got 'x'"),
+    ({"sigma": "x"}, r"sigma must be a number or one per map pair, got 'x'"),
     ({"cov_p": np.ones((2, 10)), "cov_q": np.ones((3, 10))}, r"cov_p must have shape \(B, n\) or \(B, n, 2, 2\) with B = 3"),
     ({"cov_p": np.ones((3, 10)), "cov_q": np.ones((3, 9))}, r"cov_q must have shape \(10,\) or \(10, 2, 2\)"),
     ({"cov_p": "big", "cov_q": np.ones((3, 10))}, "cov_p must be an array of numbers"),
