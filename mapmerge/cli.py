@@ -27,7 +27,10 @@ from .merging import DEFAULT_TAU, METHODS, merge_maps, pooled_sigma, residual_ma
 
 
 def _parser() -> argparse.ArgumentParser:
+    from . import __version__
+
     parser = argparse.ArgumentParser(prog="mapmerge", description="Match and merge stochastic landmark maps.")
+    parser.add_argument("--version", action="version", version=f"mapmerge {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     merge = sub.add_parser("merge", help="merge map B into map A's frame",
                            description="Merge map B into map A's frame and write the combined map. "

@@ -213,3 +213,9 @@ def test_a_map_saved_with_a_byte_order_mark_keeps_its_first_column(tmp_path):
     path.write_bytes("id,x,y\nA,0,0\nB,1,0\nC,0,1\n".encode("utf-8-sig"))
     landmarks = mm.read_map(path)
     assert list(landmarks.ids) == ["A", "B", "C"] and landmarks.points.shape == (3, 2)
+
+
+def test_version(capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main(["--version"])
+    assert exit_.value.code == 0 and capsys.readouterr().out == f"mapmerge {mm.__version__}\n"
