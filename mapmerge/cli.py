@@ -129,7 +129,8 @@ def main(argv=None) -> int:
         deg, deg_std = np.degrees(info["theta"]), np.degrees(info["theta_std"])
         print(f"matched ({res.method}): theta = {deg:.4f} ± {deg_std:.4f} deg, "
               f"t = ({info['t'][0]:.4f} ± {info['t_std'][0]:.4f}, {info['t'][1]:.4f} ± {info['t_std'][1]:.4f}) "
-              f"[q ≈ R(theta) p + t]; {info['pairs']} landmark pairs, {info['conflicts']} conflicts")
+              f"[q ≈ R(theta) p + t]; {info['pairs']} landmark pairs, {info['conflicts']} "
+              f"conflict{'' if info['conflicts'] == 1 else 's'}")
         if args.sigma is None:
             print(f"sigma = {info['sigma']:.6g} (RMS of the maps' own standard deviations)")
         print(f"combined map: {len(res.merged)} landmarks -> {info['output']}"
