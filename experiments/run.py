@@ -168,9 +168,10 @@ def run(cfg: DictConfig, output_dir: str | Path) -> Path:
         "cell %s: %d trials in %d chunks, %d to run, n_jobs=%d backend=%s",
         scenario, n, len(bounds), len(todo), cfg.mc.n_jobs, cfg.mc.backend,
     )
+    fresh = {}  # the chunks this process computed or received, kept rather than read back
     if todo:
         try:
-            _run_chunks(cfg, scenario, matcher, todo, stem)
+            fresh = _run_chunks(cfg, scenario, matcher, todo, stem)
         except KeyboardInterrupt:
             pass  # joblib may also end its results early when Ctrl-C reaches the workers
         done = sum(Path(f"{stem(a, b)}.trials.parquet").exists() for a, b in bounds)
@@ -184,7 +185,8 @@ def run(cfg: DictConfig, output_dir: str | Path) -> Path:
     # Arrow tables straight through: this runs once per cell while the
     # workers wait, so it avoids pandas round trips.
     for kind in ("trials", "pairs", "timings"):
-        table = pa.concat_tables([pq.read_table(f"{stem(a, b)}.{kind}.parquet") for a, b in bounds])
+        table = pa.concat_tables([fresh[a, b][kind] if (a, b) in fresh else pq.read_table(f"{stem(a, b)}.{kind}.parquet")
+                                  for a, b in bounds])
         if kind == "trials":
             n_rows = table.num_rows
             for i, (key, value) in enumerate(cell.items()):
@@ -197,8 +199,12 @@ def run(cfg: DictConfig, output_dir: str | Path) -> Path:
     return out / "trials.parquet"
 
 
-def _run_chunks(cfg, scenario: dict, matcher: dict, todo, stem) -> None:
-    """Run the missing chunks on the configured backend, each saved as it finishes."""
+def _run_chunks(cfg, scenario: dict, matcher: dict, todo, stem) -> dict:
+    """Run the missing chunks on the configured backend, each saved as it finishes.
+
+    Returns the tables of the chunks computed in this process or shipped to
+    it (by ``(start, stop)``), which need not be read back from their files.
+    """
     import joblib
     from tqdm.auto import tqdm
 
@@ -206,42 +212,51 @@ def _run_chunks(cfg, scenario: dict, matcher: dict, todo, stem) -> None:
     # Local workers write their own chunks (no DataFrames shipped back);
     # dask workers may sit on other machines, so the driver writes theirs.
     local = cfg.mc.backend == "loky"
+    fresh = {}
     with _backend(cfg.mc):
-        jobs = (joblib.delayed(_chunk_job)(seed, scenario, matcher, a, b, stem(a, b) if local else None)
+        jobs = (joblib.delayed(_chunk_job)(seed, scenario, matcher, a, b, stem(a, b) if local else None, os.getpid())
                 for a, b in todo)
         results = joblib.Parallel(return_as="generator_unordered")(jobs)
         with tqdm(
             total=sum(b - a for a, b in todo), unit="trial", desc=f"{cfg.name}",
             disable=not cfg.mc.progress, file=sys.stderr,
         ) as bar:
-            for a, b, frames in results:
+            for a, b, frames, tables in results:
                 if frames is not None:
-                    _write_chunk(stem(a, b), *frames)
+                    tables = _write_chunk(stem(a, b), *frames)
+                if tables is not None:
+                    fresh[a, b] = tables
                 bar.update(b - a)
+    return fresh
 
 
-def _chunk_job(seed, scenario, matcher, a, b, base: Path | None):
-    """Run one chunk; write it when ``base`` is given, else return its frames."""
+def _chunk_job(seed, scenario, matcher, a, b, base: Path | None, driver: int):
+    """Run one chunk; write it when ``base`` is given, else return its frames. Its written
+    tables come back only to the ``driver`` process itself (n_jobs=1), never across processes."""
     from .trials import run_chunk
 
     frames = run_chunk(seed, scenario, matcher, a, b)
     if base is None:
-        return a, b, frames
-    _write_chunk(base, *frames)
-    return a, b, None
+        return a, b, frames, None
+    tables = _write_chunk(base, *frames)
+    return a, b, None, tables if os.getpid() == driver else None
 
 
-def _write_chunk(base: Path, trials, pairs) -> None:
+def _write_chunk(base: Path, trials, pairs) -> dict:
+    """Write one chunk's three files; returns the tables written, by kind."""
     import pyarrow as pa
 
     from .trials import TIME_COLUMNS
 
-    write_parquet_atomic(pairs, Path(f"{base}.pairs.parquet"))
-    # One conversion from pandas; the two files are column selections of it.
+    # One conversion from pandas; the trials and timings files are column selections of it.
     table = pa.Table.from_pandas(trials, preserve_index=False)
-    _write_table_atomic(table.select(["trial", "tau", *TIME_COLUMNS]), Path(f"{base}.timings.parquet"))
+    tables = {"pairs": pa.Table.from_pandas(pairs, preserve_index=False),
+              "timings": table.select(["trial", "tau", *TIME_COLUMNS]),
+              "trials": table.drop_columns(list(TIME_COLUMNS))}
     # The trials file last: its presence marks the chunk done.
-    _write_table_atomic(table.drop_columns(list(TIME_COLUMNS)), Path(f"{base}.trials.parquet"))
+    for kind in ("pairs", "timings", "trials"):
+        _write_table_atomic(tables[kind], Path(f"{base}.{kind}.parquet"))
+    return tables
 
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="config")
