@@ -185,8 +185,8 @@ def run(cfg: DictConfig, output_dir: str | Path) -> Path:
     # Arrow tables straight through: this runs once per cell while the
     # workers wait, so it avoids pandas round trips.
     for kind in ("trials", "pairs", "timings"):
-        table = pa.concat_tables([fresh[a, b][kind] if (a, b) in fresh else pq.read_table(f"{stem(a, b)}.{kind}.parquet")
-                                  for a, b in bounds])
+        table = pa.concat_tables([fresh[a, b][kind] if (a, b) in fresh
+                                  else pq.read_table(f"{stem(a, b)}.{kind}.parquet") for a, b in bounds])
         if kind == "trials":
             n_rows = table.num_rows
             for i, (key, value) in enumerate(cell.items()):

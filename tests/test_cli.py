@@ -84,7 +84,8 @@ def test_unrelated_maps_exit_1_and_write_nothing(tmp_path, capsys):
     ("x,y\n0,0\n1,0\n0,1\n1,0\n", "bad.csv: contains duplicate points"),
     ("id,x,y\nA,0,0\nB,1,0\nA,0,1\n", "bad.csv: id 'A' is repeated (rows 1 and 3)"),
     ("x;y\n0;0\n1;0\n0;1\n", "bad.csv: columns separated by ';'"),
-    ("x,y,sxx,sxy,syy\n1,2,1,0,1\n3,4,1,2,1\n5,6,1,0,1\n", "bad.csv: row 2: covariance (sxx, sxy, syy) must be positive definite"),
+    ("x,y,sxx,sxy,syy\n1,2,1,0,1\n3,4,1,2,1\n5,6,1,0,1\n",
+     "bad.csv: row 2: covariance (sxx, sxy, syy) must be positive definite"),
     ("", "bad.csv: not a CSV/TSV table"),
     (b"\xff\xfex\x00,\x00y\x00", "bad.csv: not UTF-8 text (byte 0); save the map as UTF-8 CSV"),  # UTF-16
 ])
@@ -188,8 +189,8 @@ def test_the_user_guides_worked_example_prints_what_it_says(tmp_path, capsys, mo
     merged = pd.read_csv("merged.csv")
     fused = merged[merged.origin == "fused"]
     assert merged.origin.value_counts().to_dict() == {"q": 76, "fused": 59, "p": 23}
-    assert (fused.id_p == fused.id_q).sum() == 58 and {3, 19} == set(fused.loc[fused.id_p != fused.id_q, ["id_p", "id_q"]]
-                                                                        .to_numpy().ravel())
+    mismatched = fused.loc[fused.id_p != fused.id_q, ["id_p", "id_q"]].to_numpy().ravel()
+    assert (fused.id_p == fused.id_q).sum() == 58 and set(mismatched) == {3, 19}
     by_cli = Path("merged.csv").read_bytes()
     namespace = {}
     exec(api, namespace)  # the Python lines write the same file

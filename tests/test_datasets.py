@@ -302,8 +302,10 @@ def _tiny_log(root, log=None, trajectory="0 0 0\n1 0 0\n", trees="5 1\n"):
 @pytest.mark.parametrize("change, message", [
     ({"log": "ODOMETRY 0 1 1 0 0 0.01 0 0 0.01 0 0.01\nODOMETRY 5 6 1 0 0 0.01 0 0 0.01 0 0.01\n"},
      r"victoria_park.txt:2: odometry from pose 5 does not continue the chain at 1"),
-    ({"log": "ODOMETRY 0 1 1 0 0 0.01 0 0 0.01 0 0.01\nPOINT 1 2\n"}, r"victoria_park.txt:2: unknown record 'POINT' with 3 fields"),
-    ({"log": "ODOMETRY 0 1 1 0 0 0.01 0 0 0.01 0 0.01\nLANDMARK 9 7 4 1 0.1 0 0.1\n"}, "observation from unknown pose 9"),
+    ({"log": "ODOMETRY 0 1 1 0 0 0.01 0 0 0.01 0 0.01\nPOINT 1 2\n"},
+     r"victoria_park.txt:2: unknown record 'POINT' with 3 fields"),
+    ({"log": "ODOMETRY 0 1 1 0 0 0.01 0 0 0.01 0 0.01\nLANDMARK 9 7 4 1 0.1 0 0.1\n"},
+     "observation from unknown pose 9"),
     ({"trajectory": "0 0 zero\n"}, r"ISAM2_GT_victoriaPark.txt is malformed"),
     ({"trajectory": "0 0\n1 0\n"}, r"ISAM2_GT_victoriaPark.txt must have 3 columns, got 2"),
 ])

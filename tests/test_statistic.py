@@ -303,8 +303,8 @@ def test_many_fits_covariances_and_prediction_variances_equal_one_fit_at_a_time(
     for k, f in enumerate(np.flatnonzero(fitted)):
         al = fits[f]
         np.testing.assert_allclose(cov[f], al.cov, rtol=1e-10, atol=1e-18)
-        G = np.concatenate([(x @ (rotation(al.theta) @ ROT90).T)[..., None], np.broadcast_to(np.eye(2), x.shape + (2,))],
-                           axis=-1)
+        G = np.concatenate([(x @ (rotation(al.theta) @ ROT90).T)[..., None],
+                            np.broadcast_to(np.eye(2), x.shape + (2,))], axis=-1)
         expected = 0.5 * np.trace(G @ al.cov @ np.swapaxes(G, -1, -2), axis1=-2, axis2=-1)
         np.testing.assert_allclose(var[k], expected, rtol=1e-10)
         np.testing.assert_allclose(prediction_var(x, al), expected, rtol=1e-10)
