@@ -11,6 +11,7 @@ the numbers on those pages are always the ones the commands wrote.
 
 from __future__ import annotations
 
+import argparse
 import os
 import re
 from pathlib import Path
@@ -41,7 +42,9 @@ def refresh(readme: Path, root: Path | None = None) -> list[str]:
     return used
 
 
-def main() -> None:
+def main(argv=None) -> None:
+    argparse.ArgumentParser(description="Copy the result tables into README.md and docs/*.md "
+                                        "(every include block).").parse_args(argv)
     root = Path(__file__).resolve().parent.parent
     for page in [root / "README.md", *sorted((root / "docs").glob("*.md"))]:
         for path in refresh(page, root):
