@@ -21,14 +21,13 @@ from pathlib import Path
 
 import numpy as np
 
+from . import __version__
 from ._validation import check_points
 from .mapfiles import MapFileError, read_map, write_map
 from .merging import DEFAULT_TAU, METHODS, merge_maps, pooled_sigma, residual_match
 
 
 def _parser() -> argparse.ArgumentParser:
-    from . import __version__
-
     parser = argparse.ArgumentParser(prog="mapmerge", description="Match and merge stochastic landmark maps.")
     parser.add_argument("--version", action="version", version=f"mapmerge {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)

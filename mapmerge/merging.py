@@ -180,6 +180,8 @@ def merge_batch(P, Q, sigma, tau=DEFAULT_TAU, method="consensus", objective="lr"
     sigma = np.broadcast_to(sigma, (len(P),)).copy()
     if not np.all(np.isfinite(sigma) & (sigma > 0)):
         raise ValueError("sigma must be positive and finite for every map pair")
+    if (cov_p is None) != (cov_q is None):
+        raise ValueError("cov_p and cov_q must be given together")
     cov_p, cov_q = (None if cov is None else _check_batch_covariances(cov, maps, name)
                     for cov, maps, name in ((cov_p, P, "cov_p"), (cov_q, Q, "cov_q")))
     return _merge(P, Q, sigma, tau, method, objective, cov_p, cov_q, rng)
@@ -284,8 +286,6 @@ def _check_pair(P, Q, sigma, cov_p, cov_q):
 
 def _merge(P, Q, sigma, tau, method, objective, cov_p, cov_q, rng) -> MergeBatch:
     """The checks ``merge_maps`` and ``merge_batch`` share, then the method's two stages."""
-    if (cov_p is None) != (cov_q is None):
-        raise ValueError("cov_p and cov_q must be given together")
     log_tau = resolve_log_tau(tau)
     get_method(method)
     check_objective(objective)
