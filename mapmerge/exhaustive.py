@@ -36,6 +36,8 @@ The statistic is then compared with a threshold measured on unrelated pairs
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from scipy.spatial import ConvexHull, cKDTree
 
@@ -159,7 +161,7 @@ def null_log_tail(log_lr, n_inside, P, hull, s, c, p_shared) -> np.ndarray:
     (H,) ndarray
         The bounds (<= 0).
     """
-    radial, w_r = np.polynomial.legendre.leggauss(QUAD_RADIAL)
+    radial, w_r = _gauss_legendre(QUAD_RADIAL)
     rho = EXACT_RADIUS * s * (radial + 1) / 2
     phi = 2 * np.pi * np.arange(QUAD_ANGLES) / QUAD_ANGLES
     offsets = (rho[:, None, None] * np.stack([np.cos(phi), np.sin(phi)], -1)[None]).reshape(-1, 2)
@@ -185,6 +187,12 @@ def null_log_tail(log_lr, n_inside, P, hull, s, c, p_shared) -> np.ndarray:
     excess = np.asarray(log_lr, float) - np.asarray(n_inside, float) * np.log(1 - p_shared)
     bound = np.asarray(n_inside, float)[:, None] * log_mgf - lam * excess[:, None]
     return np.minimum(0.0, bound.min(axis=1))
+
+
+@functools.cache
+def _gauss_legendre(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss-Legendre nodes and weights on [-1, 1], computed once (numpy takes about 0.15 ms a call)."""
+    return np.polynomial.legendre.leggauss(n)
 
 
 def _near_d2(P, x, radius, tree_p=None):
