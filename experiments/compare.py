@@ -11,9 +11,11 @@ and unrelated map pairs, with the oracle association on every trial, runs
 the sweeps ``compare`` (paper, cyclic and Groth's voting; 300 pairs per
 cell), ``compare_consensus`` (consensus, 1,000 pairs per cell: the
 low-SNR targets are judged on it), ``compare_search`` (the global search
-alone, 300) and, when astroalign is installed, ``compare_astroalign``. A
-cell's seeds depend on the scenario only, so every method sees the same
-maps. Then writes:
+alone, 300), when astroalign is installed, ``compare_astroalign``, and
+``compare_association`` (consensus at 2.5 and 5 dB, 10,000 related pairs per
+layout: at 1,000 its transform is found in too few pairs to judge the
+association there). A cell's seeds depend on the scenario only, so every
+method sees the same maps. Then writes:
 
 * ``compare.md`` / ``.csv``: method x SNR with triangle detection (TP /
   common, and the part declared by the GLRT test alone) and false
@@ -34,6 +36,8 @@ maps. Then writes:
   the exhaustive ML detector find 90 % of the transforms, and at which the
   ML transform (no threshold) and the fit knowing every correspondence are
   within 1° and σ in 90 % of the pairs;
+* ``association.md`` / ``.csv``: from ``compare_association``, the
+  association on the found pairs against both oracles' (as in ``found.md``);
 * ``success.png`` / ``.pdf``: transform found and wrong pairs vs SNR per
   method and layout, with the oracle association's wrong pairs, the
   detector's transform-found curve and the fit knowing every correspondence.
@@ -58,7 +62,9 @@ from .figures import STYLE, _save  # noqa: E402
 from .paper import _call  # noqa: E402
 
 #: The sweeps of the experiment: each writes ``<out>/<preset>/table.csv``.
-PRESETS = ("compare", "compare_consensus", "compare_search", "compare_astroalign")
+PRESETS = ("compare", "compare_consensus", "compare_search", "compare_astroalign", "compare_association")
+#: The preset with many pairs at low SNR: tabulated on its own (``association.md``), not in the comparison.
+ASSOCIATION = "compare_association"
 KEYS = ["n_landmarks", "overlap", "layout", "snr_db", "method", "tau"]
 
 
@@ -137,7 +143,7 @@ def success_figure(comp: pd.DataFrame, out: Path, limit: pd.DataFrame | None = N
 
 
 def write_tables(out: Path) -> list[Path]:
-    tables = sorted(out.glob("*/table.csv"))
+    tables = sorted(t for t in out.glob("*/table.csv") if t.parent.name != ASSOCIATION)
     if not tables:
         raise FileNotFoundError(f"no */table.csv below {out}: run without --tables first")
     table = pd.concat([with_timing(t) for t in tables], ignore_index=True)
@@ -148,6 +154,8 @@ def write_tables(out: Path) -> list[Path]:
     paths += save_table(found_table(comp), out / "found")
     if limit is not None:
         paths += save_table(crossing(comp, limit), out / "crossing")
+    if (out / ASSOCIATION / "table.csv").exists():
+        paths += save_table(association_table(pd.read_csv(out / ASSOCIATION / "table.csv")), out / "association")
     return paths
 
 
@@ -163,6 +171,20 @@ def keep_timings(comp: pd.DataFrame, previous: Path) -> pd.DataFrame:
     at = pd.MultiIndex.from_frame(comp.loc[missing, keys])
     comp.loc[missing, "median_ms_per_merge"] = old.reindex(at).to_numpy()
     return comp
+
+
+def association_table(table: pd.DataFrame) -> pd.DataFrame:
+    """``association.md``: the landmark association on the pairs whose transform was found, against both
+    oracles', from a sweep with enough pairs to find some where transforms are rarely found."""
+    t = table[table.tau != "oracle"].copy()
+    t["found_pairs"] = np.round(t.found_rate * t.n_trials).astype(int)
+    names = {"method": "method", "layout": "layout", "snr_db": "SNR", "n_trials": "pairs",
+             "found_pairs": "transform found (pairs)",
+             "correct_vs_oracle_found": "correct vs oracle (found)", "wrong_vs_oracle_found": "wrong vs oracle (found)",
+             "correct_vs_transform_oracle_found": "correct vs transform oracle (found)",
+             "wrong_vs_transform_oracle_found": "wrong vs transform oracle (found)"}
+    t = t.sort_values(["layout", "snr_db"], key=lambda c: c != "strip" if c.name == "layout" else c)
+    return t[list(names)].rename(columns=names)
 
 
 def wilson(successes, n, level: float = 0.95) -> tuple[np.ndarray, np.ndarray]:

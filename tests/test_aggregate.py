@@ -100,9 +100,14 @@ def test_compare_sweep_tables_and_figure_on_both_layouts(tmp_path):
     (tmp_path / "detector").mkdir()
     pd.DataFrame({"layout": ["strip", "interleaved"], "snr_db": [30.0, 30.0], "found_rate": [1.0, 1.0]}).to_csv(
         tmp_path / "detector" / "limit.csv", index=False)
+    # A sweep for the association alone (many pairs at one SNR) is tabulated apart, not mixed in.
+    (out / "compare_association").mkdir()
+    table = pd.read_csv(out / "compare" / "table.csv")
+    table[~table.unrelated.astype(bool)].to_csv(out / "compare_association" / "table.csv", index=False)
     made = write_tables(out)
-    assert {p.name for p in made} >= {"compare.csv", "summary.md", "success.png"}
+    assert {p.name for p in made} >= {"compare.csv", "summary.md", "success.png", "association.csv"}
     comp = pd.read_csv(out / "compare.csv")
+    assert not comp.duplicated(["layout", "snr_db", "method", "tau"]).any()
     assert set(comp.layout) == {"strip", "interleaved"} and set(comp.method) == {"consensus"}
     assert comp.n_trials_unrelated.eq(6).all() and comp.oracle_correct_per_trial.notna().all()
     consensus = comp[(comp.method == "consensus") & (comp.snr_db == 30)]
@@ -123,6 +128,10 @@ def test_compare_sweep_tables_and_figure_on_both_layouts(tmp_path):
                        equal_nan=True)
     # The transform oracle (true transform, π estimated) pairs as consensus does once the transform is found.
     assert both["correct vs transform oracle (found)"].between(0.97, 1.03).all()
+    association = pd.read_csv(out / "association.csv")
+    assert list(association.layout) == ["strip", "interleaved"] and association["transform found (pairs)"].eq(6).all()
+    cols = ["correct vs oracle (found)", "wrong vs oracle (found)"]
+    assert np.allclose(association[cols], found.set_index("layout").loc[association.layout, cols], equal_nan=True)
     crossing = pd.read_csv(out / "crossing.csv").set_index(["layout", "method"])
     assert crossing.loc[("strip", "consensus"), "behind the detector (dB)"] == 0
     # Rebuilt where git has no timing.csv (a clone): the times last written are kept.
