@@ -37,7 +37,10 @@ method sees the same maps. Then writes:
   ML transform (no threshold) and the fit knowing every correspondence are
   within 1° and σ in 90 % of the pairs;
 * ``association.md`` / ``.csv``: from ``compare_association``, the
-  association on the found pairs against both oracles' (as in ``found.md``);
+  association on the found pairs against both oracles' (as in ``found.md``),
+  with 95 % intervals of the ratios to the oracle's from the found pairs'
+  own counts (kept in ``compare_association/found_pairs.csv``, as the
+  sweep's trial files are not);
 * ``success.png`` / ``.pdf``: transform found and wrong pairs vs SNR per
   method and layout, with the oracle association's wrong pairs, the
   detector's transform-found curve and the fit knowing every correspondence.
@@ -65,6 +68,11 @@ from .paper import _call  # noqa: E402
 PRESETS = ("compare", "compare_consensus", "compare_search", "compare_astroalign", "compare_association")
 #: The preset with many pairs at low SNR: tabulated on its own (``association.md``), not in the comparison.
 ASSOCIATION = "compare_association"
+#: Where its sweep runs; its found pairs are kept from there (``found_pairs.csv``) for the intervals.
+ASSOCIATION_SWEEP = Path("outputs/sweeps") / ASSOCIATION
+#: Per found map pair: the method's correct and wrong landmark pairs and both oracles'.
+PAIR_COUNTS = ["correct_pairs", "wrong_pairs", "oracle_correct_pairs", "oracle_wrong_pairs",
+               "transform_oracle_correct_pairs", "transform_oracle_wrong_pairs"]
 KEYS = ["n_landmarks", "overlap", "layout", "snr_db", "method", "tau"]
 
 
@@ -155,7 +163,9 @@ def write_tables(out: Path) -> list[Path]:
     if limit is not None:
         paths += save_table(crossing(comp, limit), out / "crossing")
     if (out / ASSOCIATION / "table.csv").exists():
-        paths += save_table(association_table(pd.read_csv(out / ASSOCIATION / "table.csv")), out / "association")
+        found = out / ASSOCIATION / "found_pairs.csv"
+        paths += save_table(association_table(pd.read_csv(out / ASSOCIATION / "table.csv"),
+                                              pd.read_csv(found) if found.exists() else None), out / "association")
     return paths
 
 
@@ -173,18 +183,54 @@ def keep_timings(comp: pd.DataFrame, previous: Path) -> pd.DataFrame:
     return comp
 
 
-def association_table(table: pd.DataFrame) -> pd.DataFrame:
+def found_pairs(sweep: Path, table: pd.DataFrame) -> pd.DataFrame:
+    """One row per map pair whose transform was found, in the cells of ``table`` (a sweep's aggregate),
+    from the sweep's ``trials.parquet`` files: layout, SNR, trial and ``PAIR_COUNTS``."""
+    files = sorted(Path(sweep).glob("*/trials.parquet"))
+    if not files:
+        raise FileNotFoundError(f"no */trials.parquet below {sweep}")
+    trials = pd.concat([pd.read_parquet(f) for f in files], ignore_index=True)
+    cells = table[["layout", "snr_db"]].drop_duplicates()
+    found = trials[trials.transform_found.astype(bool) & (trials.tau != "oracle")].merge(cells)
+    return found[["layout", "snr_db", "trial", *PAIR_COUNTS]].sort_values(["layout", "snr_db", "trial"])
+
+
+def ratio_interval(x, y, level: float = 0.95) -> tuple[float, float]:
+    """Normal interval of the ratio of sums Σx / Σy over n sampled units (the delta method:
+    standard error √(Σ(x - R y)² / (n (n - 1))) / ȳ); NaN for fewer than 2 units or Σy = 0."""
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    if len(x) < 2 or y.sum() == 0:
+        return float("nan"), float("nan")
+    r = x.sum() / y.sum()
+    half = norm.ppf(0.5 + level / 2) * np.sqrt(np.sum((x - r * y) ** 2) / (len(x) * (len(x) - 1))) / y.mean()
+    return r - half, r + half
+
+
+def association_table(table: pd.DataFrame, pairs: pd.DataFrame | None = None) -> pd.DataFrame:
     """``association.md``: the landmark association on the pairs whose transform was found, against both
-    oracles', from a sweep with enough pairs to find some where transforms are rarely found."""
+    oracles', from a sweep with enough pairs to find some where transforms are rarely found; with
+    ``pairs`` (``found_pairs``), the 95 % intervals of the ratios to the oracle's."""
     t = table[table.tau != "oracle"].copy()
     t["found_pairs"] = np.round(t.found_rate * t.n_trials).astype(int)
+    if pairs is not None:
+        def interval(x, y):
+            low, high = ratio_interval(x, y)
+            return f"{low:.3f}-{high:.3f}" if np.isfinite(low) else None
+
+        rows = [{"layout": layout, "snr_db": snr,
+                 **{f"{kind}_interval": interval(g[f"{kind}_pairs"], g[f"oracle_{kind}_pairs"])
+                    for kind in ("correct", "wrong")}}
+                for (layout, snr), g in pairs.groupby(["layout", "snr_db"])]
+        t = t.merge(pd.DataFrame(rows, columns=["layout", "snr_db", "correct_interval", "wrong_interval"]),
+                    on=["layout", "snr_db"], how="left")
     names = {"method": "method", "layout": "layout", "snr_db": "SNR", "n_trials": "pairs",
              "found_pairs": "transform found (pairs)",
-             "correct_vs_oracle_found": "correct vs oracle (found)", "wrong_vs_oracle_found": "wrong vs oracle (found)",
+             "correct_vs_oracle_found": "correct vs oracle (found)", "correct_interval": "correct: 95 % interval",
+             "wrong_vs_oracle_found": "wrong vs oracle (found)", "wrong_interval": "wrong: 95 % interval",
              "correct_vs_transform_oracle_found": "correct vs transform oracle (found)",
              "wrong_vs_transform_oracle_found": "wrong vs transform oracle (found)"}
     t = t.sort_values(["layout", "snr_db"], key=lambda c: c != "strip" if c.name == "layout" else c)
-    return t[list(names)].rename(columns=names)
+    return t[[c for c in names if c in t]].rename(columns=names)
 
 
 def wilson(successes, n, level: float = 0.95) -> tuple[np.ndarray, np.ndarray]:
@@ -305,8 +351,12 @@ def main(argv=None) -> None:
         presets.remove("compare_astroalign")  # the optional extra [baselines] is not installed
     if not args.tables:
         for preset in presets:
+            where = [f"hydra.sweep.dir={ASSOCIATION_SWEEP}"] if preset == ASSOCIATION else []
             _call(["experiments.run", "-m", f"experiment={preset}", f"aggregate_dir={out / preset}",
-                   "mc.progress=false", *args.overrides])
+                   "mc.progress=false", *args.overrides, *where])
+        if ASSOCIATION in presets:
+            table = pd.read_csv(out / ASSOCIATION / "table.csv")
+            found_pairs(ASSOCIATION_SWEEP, table).to_csv(out / ASSOCIATION / "found_pairs.csv", index=False)
     for path in write_tables(out):
         print(path)
 

@@ -100,10 +100,17 @@ def test_compare_sweep_tables_and_figure_on_both_layouts(tmp_path):
     (tmp_path / "detector").mkdir()
     pd.DataFrame({"layout": ["strip", "interleaved"], "snr_db": [30.0, 30.0], "found_rate": [1.0, 1.0]}).to_csv(
         tmp_path / "detector" / "limit.csv", index=False)
-    # A sweep for the association alone (many pairs at one SNR) is tabulated apart, not mixed in.
+    # A sweep for the association alone (many pairs at low SNR) is tabulated apart, not mixed in,
+    # with the intervals of its ratios from its found pairs.
+    from experiments.compare import found_pairs
+
     (out / "compare_association").mkdir()
     table = pd.read_csv(out / "compare" / "table.csv")
-    table[~table.unrelated.astype(bool)].to_csv(out / "compare_association" / "table.csv", index=False)
+    table = table[~table.unrelated.astype(bool)]
+    table.to_csv(out / "compare_association" / "table.csv", index=False)
+    pairs = found_pairs(tmp_path / "outputs" / "sweeps" / "compare", table)
+    assert len(pairs) == 12 and set(pairs.layout) == {"strip", "interleaved"}  # 6 related pairs per layout
+    pairs.to_csv(out / "compare_association" / "found_pairs.csv", index=False)
     made = write_tables(out)
     assert {p.name for p in made} >= {"compare.csv", "summary.md", "success.png", "association.csv"}
     comp = pd.read_csv(out / "compare.csv")
@@ -132,6 +139,10 @@ def test_compare_sweep_tables_and_figure_on_both_layouts(tmp_path):
     assert list(association.layout) == ["strip", "interleaved"] and association["transform found (pairs)"].eq(6).all()
     cols = ["correct vs oracle (found)", "wrong vs oracle (found)"]
     assert np.allclose(association[cols], found.set_index("layout").loc[association.layout, cols], equal_nan=True)
+    for col, interval in zip(cols, ("correct: 95 % interval", "wrong: 95 % interval")):
+        bounds = association[interval].dropna().str.split("-", expand=True).astype(float)
+        ratio = association.loc[bounds.index, col]
+        assert ((bounds[0] <= ratio + 5e-4) & (ratio <= bounds[1] + 5e-4)).all()
     crossing = pd.read_csv(out / "crossing.csv").set_index(["layout", "method"])
     assert crossing.loc[("strip", "consensus"), "behind the detector (dB)"] == 0
     # Rebuilt where git has no timing.csv (a clone): the times last written are kept.
@@ -153,6 +164,17 @@ def test_realistic_sweep_summary_against_the_oracle(tmp_path):
     s = summary(pd.read_csv(out / "table.csv"))
     assert len(s) == 1 and s["unrelated pairs"].iloc[0] == 4 and s["false merges"].iloc[0] == 0
     assert s["transform found"].iloc[0] == 1 and abs(s["correct vs oracle"].iloc[0] - 1) < 0.05
+
+
+def test_ratio_interval_is_the_delta_method_interval_of_a_ratio_of_sums():
+    from experiments.compare import ratio_interval
+
+    # Every unit at the same ratio: no spread, a zero-width interval at it.
+    assert np.allclose(ratio_interval([2, 4, 6], [1, 2, 3]), (2.0, 2.0))
+    # x = (1, 3), y = (1, 1): R = 2, residuals (-1, 1), SE = √(2 / 2) / 1 = 1.
+    low, high = ratio_interval([1, 3], [1, 1])
+    assert np.isclose(low, 2 - 1.959964) and np.isclose(high, 2 + 1.959964)
+    assert np.isnan(ratio_interval([1], [1])).all() and np.isnan(ratio_interval([1, 2], [0, 0])).all()
 
 
 def test_crossing_snr_interpolates_between_grid_points():
