@@ -52,6 +52,12 @@ def find_runs(dirs) -> list[Path]:
     return runs
 
 
+def runs_since(sweep_dir, started: float) -> list[Path]:
+    """The runs below ``sweep_dir`` that a multirun begun at ``started`` (``time.time()``) wrote: a job
+    always rewrites its ``trials.parquet`` when it ends, even when every chunk was already done."""
+    return [r for r in find_runs([sweep_dir]) if (r / "trials.parquet").stat().st_mtime >= started - 1]
+
+
 def load_examples(dirs) -> dict[str, pd.DataFrame]:
     """Example-trial geometry tables of every run, tagged with their cell."""
     found: dict[str, list[pd.DataFrame]] = {}

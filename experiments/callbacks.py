@@ -15,12 +15,8 @@ log = logging.getLogger(__name__)
 
 
 class AggregateOnMultirunEnd(Callback):
-    """Aggregate the runs this multirun wrote (not older runs in the same sweep dir).
-
-    A job always rewrites its ``trials.parquet`` when it ends, even when every
-    chunk was already done, so the runs of this multirun are those whose file
-    is newer than the multirun's start.
-    """
+    """Aggregate the runs this multirun wrote (not older runs in the same sweep dir:
+    ``aggregate.runs_since``)."""
 
     def __init__(self) -> None:
         self.failed = 0
@@ -37,10 +33,10 @@ class AggregateOnMultirunEnd(Callback):
         if self.failed:
             log.warning("%d job(s) failed: not aggregating", self.failed)
             return
-        from .aggregate import aggregate, find_runs
+        from .aggregate import aggregate, runs_since
 
         sweep_dir = Path(config.hydra.sweep.dir)
-        runs = [r for r in find_runs([sweep_dir]) if (r / "trials.parquet").stat().st_mtime >= self.started - 1]
+        runs = runs_since(sweep_dir, self.started)
         out = Path(config.aggregate_dir) if config.aggregate_dir else sweep_dir / "aggregate"
         # The jobs are done, so every core the multirun used may read: the cells' own
         # mc.n_jobs (1 when the launcher runs cells in parallel) or the launcher's.

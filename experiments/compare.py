@@ -50,6 +50,7 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import time
 from pathlib import Path
 
 import matplotlib
@@ -60,7 +61,7 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 from scipy.stats import norm  # noqa: E402
 
-from .aggregate import markdown, save_table, with_timing  # noqa: E402
+from .aggregate import markdown, runs_since, save_table, with_timing  # noqa: E402
 from .figures import STYLE, _save  # noqa: E402
 from .paper import _call  # noqa: E402
 
@@ -68,7 +69,7 @@ from .paper import _call  # noqa: E402
 PRESETS = ("compare", "compare_consensus", "compare_search", "compare_astroalign", "compare_association")
 #: The preset with many pairs at low SNR: tabulated on its own (``association.md``), not in the comparison.
 ASSOCIATION = "compare_association"
-#: Where its sweep runs; its found pairs are kept from there (``found_pairs.csv``) for the intervals.
+#: Where its sweep runs; the found pairs of the runs it aggregated are kept (``found_pairs.csv``) for the intervals.
 ASSOCIATION_SWEEP = Path("outputs/sweeps") / ASSOCIATION
 #: Per found map pair: the method's correct and wrong landmark pairs and both oracles'.
 PAIR_COUNTS = ["correct_pairs", "wrong_pairs", "oracle_correct_pairs", "oracle_wrong_pairs",
@@ -151,21 +152,24 @@ def success_figure(comp: pd.DataFrame, out: Path, limit: pd.DataFrame | None = N
 
 
 def write_tables(out: Path) -> list[Path]:
+    paths = []
+    if (out / ASSOCIATION / "table.csv").exists():
+        found = out / ASSOCIATION / "found_pairs.csv"
+        paths += save_table(association_table(pd.read_csv(out / ASSOCIATION / "table.csv"),
+                                              pd.read_csv(found) if found.exists() else None), out / "association")
     tables = sorted(t for t in out.glob("*/table.csv") if t.parent.name != ASSOCIATION)
     if not tables:
+        if paths:  # the association sweep alone
+            return paths
         raise FileNotFoundError(f"no */table.csv below {out}: run without --tables first")
     table = pd.concat([with_timing(t) for t in tables], ignore_index=True)
     comp = keep_timings(comparison_table(table), out / "compare.csv")
     detector = out.parent / "detector" / "limit.csv"
     limit = pd.read_csv(detector) if detector.exists() else None
-    paths = [*save_table(comp, out / "compare"), summary(comp, out / "summary.md"), *success_figure(comp, out, limit)]
+    paths += [*save_table(comp, out / "compare"), summary(comp, out / "summary.md"), *success_figure(comp, out, limit)]
     paths += save_table(found_table(comp), out / "found")
     if limit is not None:
         paths += save_table(crossing(comp, limit), out / "crossing")
-    if (out / ASSOCIATION / "table.csv").exists():
-        found = out / ASSOCIATION / "found_pairs.csv"
-        paths += save_table(association_table(pd.read_csv(out / ASSOCIATION / "table.csv"),
-                                              pd.read_csv(found) if found.exists() else None), out / "association")
     return paths
 
 
@@ -183,15 +187,11 @@ def keep_timings(comp: pd.DataFrame, previous: Path) -> pd.DataFrame:
     return comp
 
 
-def found_pairs(sweep: Path, table: pd.DataFrame) -> pd.DataFrame:
-    """One row per map pair whose transform was found, in the cells of ``table`` (a sweep's aggregate),
-    from the sweep's ``trials.parquet`` files: layout, SNR, trial and ``PAIR_COUNTS``."""
-    files = sorted(Path(sweep).glob("*/trials.parquet"))
-    if not files:
-        raise FileNotFoundError(f"no */trials.parquet below {sweep}")
-    trials = pd.concat([pd.read_parquet(f) for f in files], ignore_index=True)
-    cells = table[["layout", "snr_db"]].drop_duplicates()
-    found = trials[trials.transform_found.astype(bool) & (trials.tau != "oracle")].merge(cells)
+def found_pairs(runs) -> pd.DataFrame:
+    """One row per map pair whose transform was found in the given runs (cell directories with a
+    ``trials.parquet``): layout, SNR, trial and ``PAIR_COUNTS``."""
+    trials = pd.concat([pd.read_parquet(Path(r) / "trials.parquet") for r in runs], ignore_index=True)
+    found = trials[trials.transform_found.astype(bool) & (trials.tau != "oracle")]
     return found[["layout", "snr_db", "trial", *PAIR_COUNTS]].sort_values(["layout", "snr_db", "trial"])
 
 
@@ -352,11 +352,12 @@ def main(argv=None) -> None:
     if not args.tables:
         for preset in presets:
             where = [f"hydra.sweep.dir={ASSOCIATION_SWEEP}"] if preset == ASSOCIATION else []
+            started = time.time()
             _call(["experiments.run", "-m", f"experiment={preset}", f"aggregate_dir={out / preset}",
                    "mc.progress=false", *args.overrides, *where])
-        if ASSOCIATION in presets:
-            table = pd.read_csv(out / ASSOCIATION / "table.csv")
-            found_pairs(ASSOCIATION_SWEEP, table).to_csv(out / ASSOCIATION / "found_pairs.csv", index=False)
+            if preset == ASSOCIATION:  # the runs its aggregate holds, as the aggregation picked them
+                found_pairs(runs_since(ASSOCIATION_SWEEP, started)).to_csv(out / preset / "found_pairs.csv",
+                                                                           index=False)
     for path in write_tables(out):
         print(path)
 

@@ -102,13 +102,15 @@ def test_compare_sweep_tables_and_figure_on_both_layouts(tmp_path):
         tmp_path / "detector" / "limit.csv", index=False)
     # A sweep for the association alone (many pairs at low SNR) is tabulated apart, not mixed in,
     # with the intervals of its ratios from its found pairs.
+    from experiments.aggregate import find_runs
     from experiments.compare import found_pairs
 
     (out / "compare_association").mkdir()
     table = pd.read_csv(out / "compare" / "table.csv")
     table = table[~table.unrelated.astype(bool)]
     table.to_csv(out / "compare_association" / "table.csv", index=False)
-    pairs = found_pairs(tmp_path / "outputs" / "sweeps" / "compare", table)
+    pairs = found_pairs(find_runs([tmp_path / "outputs" / "sweeps" / "compare"]))
+    pairs = pairs.merge(table[["layout", "snr_db"]].drop_duplicates())  # the related cells
     assert len(pairs) == 12 and set(pairs.layout) == {"strip", "interleaved"}  # 6 related pairs per layout
     pairs.to_csv(out / "compare_association" / "found_pairs.csv", index=False)
     made = write_tables(out)
