@@ -21,23 +21,19 @@ checked, for every job of a sweep, before Hydra creates any directory.
 
 from __future__ import annotations
 
-import dataclasses
-import difflib
 import hashlib
-import itertools
 import json
 import logging
 import os
-import re
 import sys
-import typing
 from contextlib import contextmanager
 from pathlib import Path
 
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from .schema import ConfigError, register_configs, validate
+from .preflight import preflight
+from .schema import CONF_DIR, ConfigError, register_configs, validate
 
 # The Monte Carlo machinery (numpy, scipy, pandas, pyarrow, joblib) is imported
 # where it is used, so that the command line refuses a bad override quickly.
@@ -45,17 +41,6 @@ from .schema import ConfigError, register_configs, validate
 log = logging.getLogger(__name__)
 
 
-def _conf_dir() -> str:
-    """The Hydra configs: ``conf/`` beside the package in a source checkout,
-    ``experiments/conf`` in an installed copy."""
-    here = Path(__file__).resolve().parent
-    for candidate in (here.parent / "conf", here / "conf"):
-        if (candidate / "config.yaml").is_file():
-            return str(candidate)
-    raise FileNotFoundError(f"no Hydra configs (config.yaml) in {here.parent / 'conf'} or {here / 'conf'}")
-
-
-CONF_DIR = _conf_dir()
 
 
 def dirname(overrides: str) -> str:
@@ -279,112 +264,6 @@ def headline(trials) -> str:
             "p_d": "P_D", "p_fa": "P_FA", "success_rate": "merge success", "false_merge_rate": "false merges"}
     table = summary_table(trials.assign(time_match_s=0.0, time_merge_s=0.0))
     return markdown(table[list(cols)].rename(columns=cols))
-
-
-def preflight(argv: list[str]) -> None:
-    """Compose and validate every job a command would launch, writing nothing.
-
-    Raises
-    ------
-    ConfigError
-        With one line naming the key, the value and what is allowed.
-    """
-    from hydra import compose, initialize_config_dir
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-
-    overrides = [a for a in argv if not a.startswith("-")]
-    multirun = any(a in ("-m", "--multirun") for a in argv)
-    try:
-        parser = OverridesParser.create()
-        parsed = parser.parse_overrides(overrides)
-        jobs = [overrides]
-        with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-            if multirun:
-                # Sweep values from the presets (hydra.sweeper.params) and the
-                # command line expand exactly as Hydra's basic sweeper does.
-                plain = [o.input_line for o in parsed if not o.is_sweep_override()]
-                base = compose("config", overrides=plain, return_hydra_config=True)
-                params = [f"{k}={v}" for k, v in (base.hydra.sweeper.get("params") or {}).items()]
-                sweep = parser.parse_overrides(params + overrides)
-                jobs = expand_sweep(sweep)
-            for job in jobs:
-                cfg = None
-                if multirun:
-                    cfg = _set_values(base, parser.parse_overrides([o for o in job if o not in plain]))
-                if cfg is None:
-                    cfg = compose("config", overrides=job, return_hydra_config=True)
-                validate(cfg)
-                launcher = str(cfg.hydra.launcher.get("_target_", ""))
-                if "joblib" in launcher.lower() and cfg.mc.n_jobs != 1:
-                    raise ConfigError(
-                        f"mc.n_jobs={cfg.mc.n_jobs} is invalid: must be 1 under hydra/launcher=joblib "
-                        "(the launcher already runs jobs in parallel; joblib must not nest)"
-                    )
-    except ConfigError:
-        raise
-    except Exception as exc:  # Hydra/OmegaConf composition errors are multi-line
-        raise ConfigError(_one_line(exc, overrides)) from None
-
-
-def _one_line(exc: BaseException, overrides: list[str]) -> str:
-    """Hydra's composition error as one line naming the key and what is wrong."""
-    causes = [exc]
-    while causes[-1].__cause__ is not None:
-        causes.append(causes[-1].__cause__)
-    text = " ".join(line.strip() for line in str(causes[-1]).splitlines() if line.strip())
-    wrong_type = re.search(r"Value '(.*?)' (?:of type '\w+' )?could not be converted to (\w+)", text)
-    key = re.search(r"(?:full_key|override)[: ]+([\w.]+)", " ".join(str(c) for c in causes))
-    if wrong_type and key:
-        return f"{key[1]}={wrong_type[1]!r} is invalid: expected {_TYPE_NAMES.get(wrong_type[2], wrong_type[2])}"
-    bad_bool = re.search(r"Value '(.*?)' is not a valid bool.*?full_key: ([\w.]+)", text)
-    if bad_bool:
-        return f"{bad_bool[2]}={bad_bool[1]!r} is invalid: expected true or false"
-    missing = (re.search(r"Could not override '([\w.]+)'", text)
-               or re.search(r"Key '\w+' not in '\w+'.*?full_key: ([\w.]+)", text))
-    if missing:
-        near = _nearest_key(missing[1])
-        return f"{missing[1]} is not a config key" + (f"; did you mean {near}?" if near else "")
-    return text
-
-
-_TYPE_NAMES = {"Float": "a number", "Integer": "an integer", "Boolean": "true or false", "String": "a string"}
-
-
-def _nearest_key(key: str) -> str | None:
-    from .schema import Config
-
-    schema, parts = Config, key.split(".")
-    for part in parts[:-1]:
-        hints = typing.get_type_hints(schema)
-        if part not in hints or not dataclasses.is_dataclass(hints[part]):
-            return None
-        schema = hints[part]
-    near = difflib.get_close_matches(parts[-1], list(typing.get_type_hints(schema)), n=1)
-    return ".".join(parts[:-1] + near) if near else None
-
-
-def expand_sweep(overrides) -> list[list[str]]:
-    """Every job of a sweep: the cartesian product of the sweep overrides'
-    values, in the order Hydra's basic sweeper launches them."""
-    choices = [[f"{o.get_key_element()}={v}" for v in o.sweep_string_iterator()] if o.is_sweep_override()
-               else [o.input_line] for o in overrides]
-    return [list(job) for job in itertools.product(*choices)]
-
-
-def _set_values(base: DictConfig, overrides) -> DictConfig | None:
-    """``base`` with plain ``key=value`` overrides applied, or None when one
-    is anything else (a config group, ``+``/``~``, a bad key or value):
-    composing each of a big sweep's jobs from scratch costs seconds."""
-    if any(o.is_add() or o.is_delete() or o.is_force_add() or o.package is not None
-           or Path(CONF_DIR, *o.key_or_group.split(".")).is_dir() for o in overrides):
-        return None
-    cfg = base.copy()
-    try:
-        for o in overrides:
-            OmegaConf.update(cfg, o.key_or_group, o.value(), merge=False)
-    except Exception:  # let compose produce Hydra's own message
-        return None
-    return cfg
 
 
 def cli() -> None:

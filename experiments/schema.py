@@ -14,9 +14,23 @@ import importlib.util
 import math
 import typing
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Optional
 
 from hydra.core.config_store import ConfigStore
+
+def _conf_dir() -> str:
+    """The Hydra configs: ``conf/`` beside the package in a source checkout,
+    ``experiments/conf`` in an installed copy."""
+    here = Path(__file__).resolve().parent
+    for candidate in (here.parent / "conf", here / "conf"):
+        if (candidate / "config.yaml").is_file():
+            return str(candidate)
+    raise FileNotFoundError(f"no Hydra configs (config.yaml) in {here.parent / 'conf'} or {here / 'conf'}")
+
+
+CONF_DIR = _conf_dir()
+
 
 BACKENDS = ("loky", "dask")
 KINDS = ("synthetic", "victoria_park")
@@ -90,8 +104,17 @@ class Config:
 
 
 def register_configs() -> None:
-    cs = ConfigStore.instance()
-    cs.store(name="base_config", node=Config)
+    """Store the schema, and register the sweeper plugin (``hydra/sweeper: preflight``)
+    by hand: Hydra's plugin scan does not see a package installed in editable mode."""
+    from hydra.core.plugins import Plugins
+
+    # After the scan, which re-runs Hydra's own plugin modules: the sweeper must
+    # subclass the BasicSweeper that scan leaves behind.
+    plugins = Plugins.instance()
+    from hydra_plugins.mapmerge_sweeper.preflight_sweeper import PreflightSweeper
+
+    ConfigStore.instance().store(name="base_config", node=Config)
+    plugins.register(PreflightSweeper)
 
 
 def _fail(key: str, value, allowed: str):

@@ -1,13 +1,16 @@
 """Config composition and validation: every preset composes, bad values fail fast with one line."""
 
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 from omegaconf import OmegaConf
 
-from experiments.run import CONF_DIR, expand_sweep
-from experiments.schema import ConfigError, validate
-from harness_utils import cli, compose_config
+from experiments.preflight import expand_sweep
+from experiments.schema import CONF_DIR, ConfigError, validate
+from harness_utils import ROOT, cli, compose_config
 
 PRESETS = sorted(p.stem for p in (Path(CONF_DIR) / "experiment").glob("*.yaml"))
 GROUPS = {g: sorted(p.stem for p in (Path(CONF_DIR) / g).glob("*.yaml")) for g in ("scenario", "matcher", "mc")}
@@ -111,3 +114,34 @@ def test_invalid_overrides_fail_fast_and_write_nothing(tmp_path, args, message):
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error:") and message in lines[0], proc.stderr
     assert list(tmp_path.iterdir()) == []
+
+
+def test_the_sweeper_skips_only_jobs_the_preflight_validated():
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    from experiments.preflight import job_key, preflight, was_validated
+
+    # However a job's overrides are spelt or ordered; hydra.* settings are not part of a job.
+    assert job_key(["mc.progress=false", "scenario.snr_db=5"]) == job_key(
+        ["scenario.snr_db=5", "mc.progress=False", "hydra.verbose=true"])
+    assert job_key(["scenario.snr_db=5"]) != job_key(["scenario.snr_db=5.0"])  # other run directories
+    args = ["experiment=smoke", "scenario.snr_db=7,9", "mc.progress=false"]
+    cfg = compose_config(["experiment=smoke"], hydra=True)
+    params = [f"{k}={v}" for k, v in cfg.hydra.sweeper.params.items()]
+    # The batch as Hydra's sweeper forms it (values re-spelt, e.g. mc.progress=False).
+    batch = BasicSweeper.split_arguments(OverridesParser.create().parse_overrides(params + args), None)[0]
+    assert not was_validated(batch)
+    preflight(["-m", *args])
+    assert was_validated(batch)
+    assert not was_validated([[*batch[0], "scenario.overlap=0.5"]])
+
+
+def test_a_sweep_not_preflighted_is_still_checked_before_any_job_runs(tmp_path):
+    # Hydra's main without the command line's preflight: the sweeper must check every job itself.
+    code = ("import sys; from experiments.run import main; "
+            "sys.argv = ['run', '-m', 'experiment=smoke', 'scenario.snr_db=20,loud', 'hydra.sweep.dir=out']; main()")
+    proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(ROOT)},
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode != 0 and "loud" in proc.stderr
+    assert not list(tmp_path.rglob("trials.parquet"))
