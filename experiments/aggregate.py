@@ -25,10 +25,11 @@ from pathlib import Path
 import joblib
 import numpy as np
 import pandas as pd
+import pyarrow as pa
 
 from mapmerge import metrics
 
-from .trials import LATER_KEYS
+from .trials import LATER_KEYS, TIME_COLUMNS
 
 CELL = ["kind", "cut", "source", "n_landmarks", "overlap", "snr_db", "aspect", "unrelated", "layout", "p_detect",
         "clutter", "anisotropy", "method", "objective", "use_cov"]
@@ -97,11 +98,11 @@ def load(dirs, n_jobs: int = 1) -> tuple[pd.DataFrame, dict[tuple, pd.DataFrame]
         joblib.delayed(_load_run)(run) for run in find_runs(dirs))
     by_cell = {}
     for t, p in runs:
-        by_cell.setdefault(tuple(t[CELL].iloc[0]), []).append((t, p))
+        by_cell.setdefault(tuple(t.column(c)[0].as_py() for c in CELL), []).append((t, p))
     # A run never repeats a trial: only a cell with several runs can hold one twice.
     for cell, parts in by_cell.items():
         if len(parts) > 1:
-            keys = pd.concat([t[["seed", "trial", "tau"]] for t, _ in parts], ignore_index=True)
+            keys = pa.concat_tables([t.select(["seed", "trial", "tau"]) for t, _ in parts]).to_pandas()
             dup = keys.duplicated()
             if dup.any():
                 row = keys[dup].iloc[0]
@@ -109,7 +110,8 @@ def load(dirs, n_jobs: int = 1) -> tuple[pd.DataFrame, dict[tuple, pd.DataFrame]
                     f"trial {row.trial} of cell {dict(zip(CELL, cell))} (seed {row.seed}) appears in more than "
                     "one run; pass run directories that do not overlap (e.g. one n_trials setting per cell)"
                 )
-    trials = pd.concat([t for t, _ in runs], ignore_index=True)
+    # One conversion of all runs at once: concatenating Arrow tables copies nothing.
+    trials = pa.concat_tables([t for t, _ in runs], promote_options="default").to_pandas()
     return trials, {cell: _once([p for _, p in by_cell[cell]]) for cell in sorted(by_cell)}
 
 
@@ -131,10 +133,21 @@ def _once(parts: list[pd.DataFrame]) -> pd.DataFrame:
     return pd.concat(kept, ignore_index=True)
 
 
-def _load_run(run: Path) -> tuple[pd.DataFrame, pd.DataFrame]:
-    t = with_defaults(pd.read_parquet(run / "trials.parquet"))
-    t = t.merge(pd.read_parquet(run / "timings.parquet"), on=["trial", "tau"], how="left")
-    return t, pd.read_parquet(run / "pairs.parquet").assign(seed=t["seed"].iloc[0])
+def _load_run(run: Path) -> tuple[pa.Table, pd.DataFrame]:
+    """A run's trials (as Arrow, timings joined, columns it predates at their defaults) and its pairs."""
+    import pyarrow.parquet as pq
+
+    t = pq.read_table(run / "trials.parquet")
+    timings = pq.read_table(run / "timings.parquet")
+    # The run wrote both files from one table, so their rows match one to one.
+    if not all(t.column(k).equals(timings.column(k)) for k in ("trial", "tau")):
+        raise ValueError(f"{run}: timings.parquet does not match trials.parquet row for row")
+    for key, value in LATER_COLUMNS.items():
+        if key not in t.column_names:
+            t = t.append_column(key, pa.repeat(value, t.num_rows))
+    for name in TIME_COLUMNS:
+        t = t.append_column(name, timings.column(name))
+    return t, pq.read_table(run / "pairs.parquet").to_pandas().assign(seed=t.column("seed")[0].as_py())
 
 
 def _sample(fpr, tpr, thr):

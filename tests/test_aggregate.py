@@ -58,6 +58,19 @@ def test_tau_rules_split_across_jobs_count_each_trial_once(tmp_path):
     b = pd.read_csv(tmp_path / "one_agg" / "table.csv").sort_values("tau", ignore_index=True)
     pd.testing.assert_frame_equal(a, b)
     assert pd.read_csv(tmp_path / "one_agg" / "auc.csv").n_trials.item() == 60
+    # A run written before the scenario's later columns existed reads at their first-release values.
+    shutil.copytree(tmp_path / "one", tmp_path / "older")
+    trials = pd.read_parquet(tmp_path / "older" / "trials.parquet")
+    assert (trials.layout == "strip").all() and (trials.p_detect == 0.9).all()
+    trials.drop(columns=["layout", "p_detect"]).to_parquet(tmp_path / "older" / "trials.parquet")
+    aggregate([tmp_path / "older"], tmp_path / "older_agg")
+    for name in ("table.csv", "auc.csv", "roc.csv"):
+        assert (tmp_path / "older_agg" / name).read_bytes() == (tmp_path / "one_agg" / name).read_bytes(), name
+    # Timings that do not belong to the trials row for row are refused.
+    pd.read_parquet(tmp_path / "older" / "timings.parquet").iloc[::-1].to_parquet(
+        tmp_path / "older" / "timings.parquet")
+    with pytest.raises(ValueError, match="row for row"):
+        aggregate([tmp_path / "older"], tmp_path / "older_agg2")
     # The same trials in two runs of one cell would be counted twice: refused.
     shutil.copytree(tmp_path / "one", tmp_path / "copy")
     with pytest.raises(ValueError, match="appears in more than one run"):
