@@ -455,10 +455,10 @@ def match_triangles(P: np.ndarray, Q: np.ndarray, sigma: np.ndarray, objective: 
     if sparse:
         parts = [_sparse_pairs(tri_p, tri_q, vp, vq, b, float(sigma[b]), objective, cyclic, log_tau, solve_lp)
                  for b in range(len(tri_p))]
+        trial = np.repeat(np.arange(len(parts)), [len(p[0]) for p in parts])
+        i, j, score, shift = (np.concatenate([p[k] for p in parts]) for k in range(4))
     else:
-        parts = _dense_pairs(tri_p, tri_q, vp, vq, sigma, objective, cyclic)
-    trial = np.repeat(np.arange(len(parts)), [len(p[0]) for p in parts])
-    i, j, score, shift = (np.concatenate([p[k] for p in parts]) for k in range(4))
+        trial, i, j, score, shift = _dense_pairs(tri_p, tri_q, vp, vq, sigma, objective, cyclic)
     roll = (np.arange(3)[None, :] + shift[:, None].astype(np.intp)) % 3
     gp, gq = tri_p.offsets[trial] + i, tri_q.offsets[trial] + j
     return TriangleMatch(tri_p, tri_q, trial, np.stack([i, j], axis=1).astype(np.intp), score,
@@ -466,19 +466,26 @@ def match_triangles(P: np.ndarray, Q: np.ndarray, sigma: np.ndarray, objective: 
 
 
 def _dense_pairs(tri_p, tri_q, vp, vq, sigma, objective, cyclic):
-    """Per map pair, the LP (14) on all its triangle pairs: (i, j, log Λ, shift) of its tentative pairs.
+    """Per map pair, the LP (14) on all its triangle pairs: (trial, i, j, log Λ, shift) of the
+    tentative pairs of every map pair, in map-pair order.
 
     Solved block by block as the scores come, so that memory stays at one
     block's whatever the number of map pairs (no (B, Tp, Tq) array of scores
     or weights is ever held).
     """
-    parts = [None] * len(tri_p)
+    parts = []
     for trials, log_lr, shift in pairwise_log_lr_blocks(tri_p, tri_q, vp, vq, sigma, cyclic):
         weight = lp_weight(log_lr, objective)
-        for k, b in enumerate(trials):
-            i, j = linear_sum_assignment(weight[k, : tri_p.count[b], : tri_q.count[b]], maximize=True)
-            parts[b] = i, j, log_lr[k, i, j], shift[k, i, j]
-    return parts
+        solved = [linear_sum_assignment(weight[k, :tp, :tq], maximize=True)
+                  for k, (tp, tq) in enumerate(zip(tri_p.count[trials].tolist(), tri_q.count[trials].tolist()))]
+        k = np.repeat(np.arange(len(trials)), [len(i) for i, _ in solved])
+        i, j = np.concatenate([i for i, _ in solved]), np.concatenate([j for _, j in solved])
+        parts.append((trials[k], i, j, log_lr[k, i, j], shift[k, i, j]))
+    trial, i, j, score, shift = (np.concatenate([p[c] for p in parts]) for c in range(5))
+    # Blocks group map pairs by triangle count; a stable sort restores map-pair order
+    # and keeps each one's pairs in the LP's order.
+    order = np.argsort(trial, kind="stable")
+    return trial[order], i[order], j[order], score[order], shift[order]
 
 
 def _sparse_pairs(tri_p, tri_q, vp, vq, b, sigma, objective, cyclic, log_tau, solve_lp):
