@@ -7,8 +7,8 @@ with one line naming the key, before a directory is made or a trial runs. A
 sweep's jobs are composed from one base config with their plain
 ``key=value`` overrides applied, much faster than Hydra composes them.
 
-The jobs it passed are remembered (``was_validated``) so that the sweeper
-(``hydra_plugins.mapmerge_sweeper``) need not compose them a second time.
+The jobs it passed are handed to the sweeper (``hydra/sweeper: preflight``,
+``hydra_plugins.mapmerge_sweeper``), which then need not compose them again.
 """
 
 from __future__ import annotations
@@ -22,10 +22,6 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from .schema import CONF_DIR, ConfigError, register_configs, validate
-
-#: Jobs (``job_key``) that ``preflight`` composed and validated in this process.
-VALIDATED: set[frozenset] = set()
-
 
 def preflight(argv: list[str]) -> None:
     """Compose and validate every job a command would launch, writing nothing.
@@ -45,6 +41,9 @@ def preflight(argv: list[str]) -> None:
         parsed = parser.parse_overrides(overrides)
         jobs = [overrides]
         register_configs()
+        # Imported after register_configs: Hydra's plugin scan must have run first (schema.register_configs).
+        from hydra_plugins.mapmerge_sweeper.preflight_sweeper import key_value, validated
+
         with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
             if multirun:
                 # Sweep values from the presets (hydra.sweeper.params) and the
@@ -54,11 +53,11 @@ def preflight(argv: list[str]) -> None:
                 params = [f"{k}={v}" for k, v in (base.hydra.sweeper.get("params") or {}).items()]
                 sweep = parser.parse_overrides(params + overrides)
                 jobs = expand_sweep(sweep)
+                applied = {key_value(o) for o in plain}  # already in base
             for job in jobs:
                 cfg = None
                 if multirun:
-                    applied = {_key_value(o) for o in plain}
-                    cfg = _set_values(base, [o for o in parser.parse_overrides(job) if _key_value(o) not in applied])
+                    cfg = _set_values(base, [o for o in parser.parse_overrides(job) if key_value(o) not in applied])
                 if cfg is None:
                     cfg = compose("config", overrides=job, return_hydra_config=True)
                 validate(cfg)
@@ -72,26 +71,7 @@ def preflight(argv: list[str]) -> None:
         raise
     except Exception as exc:  # Hydra/OmegaConf composition errors are multi-line
         raise ConfigError(_one_line(exc, overrides)) from None
-    VALIDATED.update(job_key(job) for job in jobs)
-
-
-def job_key(overrides) -> frozenset:
-    """A job's task overrides as a set of (key, value) however they were spelt
-    (Hydra launches ``mc.progress=False`` for ``mc.progress=false``); ``hydra.*``
-    settings are not part of a job."""
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-
-    return frozenset(_key_value(o) for o in OverridesParser.create().parse_overrides(list(overrides))
-                     if not o.is_hydra_override())
-
-
-def _key_value(override) -> tuple[str, str]:
-    return override.get_key_element(), override.get_value_element_as_str()
-
-
-def was_validated(batch) -> bool:
-    """Whether ``preflight`` validated every job of a batch (lists of overrides) in this process."""
-    return bool(VALIDATED) and all(job_key(job) in VALIDATED for job in batch)
+    validated(jobs)
 
 
 def _one_line(exc: BaseException, overrides: list[str]) -> str:

@@ -19,6 +19,7 @@ from typing import Optional
 
 from hydra.core.config_store import ConfigStore
 
+
 def _conf_dir() -> str:
     """The Hydra configs: ``conf/`` beside the package in a source checkout,
     ``experiments/conf`` in an installed copy."""
@@ -30,7 +31,6 @@ def _conf_dir() -> str:
 
 
 CONF_DIR = _conf_dir()
-
 
 BACKENDS = ("loky", "dask")
 KINDS = ("synthetic", "victoria_park")

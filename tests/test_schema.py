@@ -120,7 +120,8 @@ def test_the_sweeper_skips_only_jobs_the_preflight_validated():
     from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
-    from experiments.preflight import job_key, preflight, was_validated
+    from experiments.preflight import preflight
+    from hydra_plugins.mapmerge_sweeper.preflight_sweeper import job_key, was_validated
 
     # However a job's overrides are spelt or ordered; hydra.* settings are not part of a job.
     assert job_key(["mc.progress=false", "scenario.snr_db=5"]) == job_key(

@@ -14,10 +14,11 @@ sweeper's.
 # No `from __future__ import annotations`: Hydra runs plugin modules outside
 # sys.modules, where dataclasses cannot resolve string annotations.
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Iterable, Sequence
 
 from hydra._internal.core_plugins.basic_sweeper import BasicSweeper, BasicSweeperConf
 from hydra.core.config_store import ConfigStore
+from hydra.core.override_parser.overrides_parser import OverridesParser
 
 
 @dataclass
@@ -29,11 +30,36 @@ ConfigStore.instance().store(group="hydra/sweeper", name="preflight", node=Prefl
                              provider="mapmerge")
 
 
+#: Jobs (``job_key``) the command line's check validated in this process. (Set only after
+#: Hydra's plugin scan, which may run this module again.)
+VALIDATED: set = set()
+
+
+def key_value(override) -> tuple:
+    """A parsed override as (key, value) spelt as Hydra launches it (``mc.progress=False``)."""
+    return override.get_key_element(), override.get_value_element_as_str()
+
+
+def job_key(overrides: Iterable[str]) -> frozenset:
+    """A job's task overrides as a set of (key, value), however they were spelt or ordered;
+    ``hydra.*`` settings are not part of a job."""
+    return frozenset(key_value(o) for o in OverridesParser.create().parse_overrides(list(overrides))
+                     if not o.is_hydra_override())
+
+
+def validated(jobs: Iterable[Sequence[str]]) -> None:
+    """Record jobs (lists of overrides) as composed and validated."""
+    VALIDATED.update(job_key(job) for job in jobs)
+
+
+def was_validated(batch: Sequence[Sequence[str]]) -> bool:
+    """Whether every job of a batch was recorded by ``validated``."""
+    return bool(VALIDATED) and all(job_key(job) in VALIDATED for job in batch)
+
+
 class PreflightSweeper(BasicSweeper):
-    """``BasicSweeper`` that trusts ``experiments.preflight`` for the jobs it validated."""
+    """``BasicSweeper`` that trusts ``validated`` for the jobs recorded there."""
 
     def validate_batch_is_legal(self, batch: Sequence[Sequence[str]]) -> None:
-        from experiments.preflight import was_validated
-
         if not was_validated(batch):
             super().validate_batch_is_legal(batch)
