@@ -16,6 +16,7 @@ sweeper's.
 from dataclasses import dataclass
 from typing import Iterable, Sequence
 
+# Hydra keeps its basic sweeper in _internal; subclassing it keeps its sweep semantics exactly.
 from hydra._internal.core_plugins.basic_sweeper import BasicSweeper, BasicSweeperConf
 from hydra.core.config_store import ConfigStore
 from hydra.core.override_parser.overrides_parser import OverridesParser
