@@ -13,6 +13,7 @@ sweeper's.
 
 # No `from __future__ import annotations`: Hydra runs plugin modules outside
 # sys.modules, where dataclasses cannot resolve string annotations.
+import functools
 from dataclasses import dataclass
 from typing import Iterable, Sequence
 
@@ -44,8 +45,12 @@ def key_value(override) -> tuple:
 def job_key(overrides: Iterable[str]) -> frozenset:
     """A job's task overrides as a set of (key, value), however they were spelt or ordered;
     ``hydra.*`` settings are not part of a job."""
-    return frozenset(key_value(o) for o in OverridesParser.create().parse_overrides(list(overrides))
-                     if not o.is_hydra_override())
+    return frozenset(key_value(o) for o in _parser().parse_overrides(list(overrides)) if not o.is_hydra_override())
+
+
+@functools.cache
+def _parser() -> OverridesParser:
+    return OverridesParser.create()  # a few milliseconds each: once, not once per job
 
 
 def validated(jobs: Iterable[Sequence[str]]) -> None:
