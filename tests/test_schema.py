@@ -117,7 +117,6 @@ def test_invalid_overrides_fail_fast_and_write_nothing(tmp_path, args, message):
 
 
 def test_the_sweeper_skips_only_jobs_the_preflight_validated():
-    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
     from experiments.preflight import preflight
@@ -131,7 +130,7 @@ def test_the_sweeper_skips_only_jobs_the_preflight_validated():
     cfg = compose_config(["experiment=smoke"], hydra=True)
     params = [f"{k}={v}" for k, v in cfg.hydra.sweeper.params.items()]
     # The batch as Hydra's sweeper forms it (values re-spelt, e.g. mc.progress=False).
-    batch = BasicSweeper.split_arguments(OverridesParser.create().parse_overrides(params + args), None)[0]
+    batch = expand_sweep(OverridesParser.create().parse_overrides(params + args))
     assert not was_validated(batch)
     preflight(["-m", *args])
     assert was_validated(batch)
