@@ -76,9 +76,8 @@ def cell_key(scenario: dict) -> int:
     return int.from_bytes(hashlib.sha256(canon.encode()).digest()[:8], "big") >> 1
 
 
-def trial_seeds(root_seed: int, scenario: dict, ks) -> list[np.random.SeedSequence]:
-    key = cell_key(scenario)
-    return [np.random.SeedSequence(int(root_seed), spawn_key=(key, int(k))) for k in ks]
+def trial_seeds(root_seed: int, scenario: dict, ks) -> mm.simulate.SpawnedSeeds:
+    return mm.simulate.SpawnedSeeds(int(root_seed), (cell_key(scenario),), np.asarray(ks, dtype=np.int64))
 
 
 @functools.lru_cache(maxsize=8)

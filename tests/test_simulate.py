@@ -69,6 +69,28 @@ def test_make_pairs_needs_a_seed():
         mm.simulate.make_pairs(10, 0.75, 20, [])
 
 
+@pytest.mark.parametrize("entropy, prefix", [(0, ()), (5, (2**62 + 11,)), (2**40 + 7, (3, 0)), (2**130 + 1, (1,))])
+def test_spawned_seeds_are_their_seed_sequences(entropy, prefix):
+    # Trial indices across the 32-bit word boundary take the two-word path of the entropy.
+    ks = np.array([0, 1, 7, 2**32 - 1, 2**32, 2**63 - 1])
+    seeds = mm.simulate.SpawnedSeeds(entropy, prefix, ks)
+    listed = [np.random.SeedSequence(entropy, spawn_key=(*prefix, int(k))) for k in ks]
+    assert [s.spawn_key for s in seeds] == [s.spawn_key for s in listed]
+    for rng, seed in zip(seeds.generators(), listed):
+        assert rng.bit_generator.state == np.random.PCG64(seed).state
+    a = mm.simulate.make_pairs(12, 0.75, 20, seeds, layout="interleaved", clutter=0.2, anisotropy=1.0)
+    b = mm.simulate.make_pairs(12, 0.75, 20, listed, layout="interleaved", clutter=0.2, anisotropy=1.0)
+    for name in ("p", "q", "ids_p", "ids_q", "truth", "sigma", "theta", "t", "cov_p", "cov_q"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+
+
+@pytest.mark.parametrize("args", [(-1, (), [0]), (0, (-2,), [0]), (0, (), [-1]), (0, (), [0.5]), (0, (), [[0]]),
+                                  (0, (), np.array([2**63], dtype=np.uint64))])
+def test_spawned_seeds_refuse_bad_values(args):
+    with pytest.raises(ValueError, match="non-negative ints"):
+        mm.simulate.SpawnedSeeds(*args)
+
+
 def test_interleaved_layout_puts_unshared_landmarks_among_common_ones():
     for layout, inside in (("strip", 0), ("interleaved", 5)):
         sc = mm.simulate.make_pair(100, 0.75, 40, rng=5, layout=layout, p_detect=0.9)
