@@ -15,11 +15,19 @@ directories (runs of the same cell, e.g. other seeds, are pooled) and writes:
   so that the other files are reproducible to the bit);
 - ``examples_triangles.csv`` / ``examples_landmarks.csv`` when runs saved
   example geometry (``mc.examples``), for Fig. 1 and Fig. 2.
+
+Each run also writes its own cell's rows of the first four
+(``summary_*.parquet``, by ``run_summaries``, in its worker while other
+jobs run), so a sweep's aggregation reads those small files rather than
+every run's trials and pairs. A cell pooled from several runs, or a run
+without them (older, or interrupted before writing them), is computed from
+its trials and pairs; the tables are the same bits either way.
 """
 
 from __future__ import annotations
 
 import argparse
+from collections import Counter
 from pathlib import Path
 
 import joblib
@@ -51,6 +59,14 @@ def find_runs(dirs) -> list[Path]:
     if not runs:
         raise FileNotFoundError(f"no trials.parquet below {', '.join(map(str, dirs))}")
     return runs
+
+
+#: The tables a run summarises for its own cell, each in ``summary_<kind>.parquet``.
+SUMMARIES = ("roc", "auc", "table", "timing")
+
+
+def summary_path(run, kind: str) -> Path:
+    return Path(run) / f"summary_{kind}.parquet"
 
 
 def runs_since(sweep_dir, started: float) -> list[Path]:
@@ -137,8 +153,10 @@ def _load_run(run: Path) -> tuple[pa.Table, pd.DataFrame]:
     """A run's trials (as Arrow, timings joined, columns it predates at their defaults) and its pairs."""
     import pyarrow.parquet as pq
 
-    t = pq.read_table(run / "trials.parquet")
-    timings = pq.read_table(run / "timings.parquet")
+    return _joined(run, *(pq.read_table(run / f"{kind}.parquet") for kind in ("trials", "timings", "pairs")))
+
+
+def _joined(run, t: pa.Table, timings: pa.Table, pairs: pa.Table) -> tuple[pa.Table, pd.DataFrame]:
     # The run wrote both files from one table, so their rows match one to one.
     if not all(t.column(k).equals(timings.column(k)) for k in ("trial", "tau")):
         raise ValueError(f"{run}: timings.parquet does not match trials.parquet row for row")
@@ -147,7 +165,63 @@ def _load_run(run: Path) -> tuple[pa.Table, pd.DataFrame]:
             t = t.append_column(key, pa.repeat(value, t.num_rows))
     for name in TIME_COLUMNS:
         t = t.append_column(name, timings.column(name))
-    return t, pq.read_table(run / "pairs.parquet").to_pandas().assign(seed=t.column("seed")[0].as_py())
+    return t, pairs.to_pandas().assign(seed=t.column("seed")[0].as_py())
+
+
+def _cell(table: pa.Table) -> tuple:
+    return tuple(table.column(c)[0].as_py() for c in CELL)
+
+
+def run_summaries(run, trials: pa.Table, timings: pa.Table, pairs: pa.Table) -> dict[str, pd.DataFrame]:
+    """One run's rows of each table in ``SUMMARIES``, from the tables it writes to its files."""
+    t, p = _joined(run, trials, timings, pairs)
+    return cell_tables(t.to_pandas(), {_cell(t): p})
+
+
+def cell_tables(trials: pd.DataFrame, pairs: dict[tuple, pd.DataFrame], n_jobs: int = 1) -> dict[str, pd.DataFrame]:
+    """The tables in ``SUMMARIES`` of the cells of ``trials`` and ``pairs`` (as from ``load``)."""
+    roc, auc = roc_tables(pairs, n_jobs)
+    return {"roc": roc, "auc": auc, "table": summary_table(trials), "timing": timing_table(trials)}
+
+
+def aggregate_tables(runs, n_jobs: int = 1) -> dict[str, pd.DataFrame]:
+    """The tables in ``SUMMARIES`` of some runs, cells in sorted order.
+
+    A cell with one run that wrote its summaries reads them; every other
+    cell is computed from its runs' trials and pairs (``load``).
+    """
+    import pyarrow.parquet as pq
+
+    summaries = {}
+    for run in runs:
+        if all(summary_path(run, kind).exists() for kind in SUMMARIES):
+            summaries[run] = {kind: pq.read_table(summary_path(run, kind)) for kind in SUMMARIES}
+    cells = {run: _cell(summaries[run]["table"]) if run in summaries else _run_cell(run) for run in runs}
+    runs_of = Counter(cells.values())
+    lone = [run for run in runs if run in summaries and runs_of[cells[run]] == 1]
+    pieces = [{kind: table.to_pandas() for kind, table in summaries[run].items()} for run in lone]
+    rest = [run for run in runs if run not in lone]
+    if rest:
+        pieces.append(cell_tables(*load(rest, n_jobs), n_jobs))
+    keys = {"roc": CELL, "auc": CELL, "table": CELL + ["tau"], "timing": CELL + ["tau"]}
+    # Stable: the ROC points keep their order within a cell.
+    return {kind: _concat([p[kind] for p in pieces]).sort_values(keys[kind], kind="stable", ignore_index=True)
+            for kind in SUMMARIES}
+
+
+def _concat(frames: list[pd.DataFrame]) -> pd.DataFrame:
+    filled = [f for f in frames if not f.empty]  # baselines' empty ROC tables carry no dtypes
+    return pd.concat(filled, ignore_index=True) if filled else frames[0]
+
+
+def _run_cell(run: Path) -> tuple:
+    """A run's cell from the first row of its trials (columns it predates at their defaults)."""
+    import pyarrow.parquet as pq
+
+    file = pq.ParquetFile(run / "trials.parquet")
+    present = [c for c in CELL if c in file.schema_arrow.names]
+    row = file.read_row_group(0, columns=present).slice(0, 1).to_pylist()[0]
+    return tuple(row[c] if c in row else LATER_COLUMNS[c] for c in CELL)
 
 
 def _sample(fpr, tpr, thr):
@@ -243,19 +317,15 @@ def timing_table(trials: pd.DataFrame) -> pd.DataFrame:
 
 
 def aggregate(dirs, out, n_jobs: int = 1) -> dict[str, Path]:
-    """Write roc.csv, auc.csv, table.csv and table.md into ``out`` (``n_jobs`` threads)."""
-    trials, pairs = load(dirs, n_jobs)
+    """Write roc.csv, auc.csv, table.csv, timing.csv and table.md into ``out`` (``n_jobs`` threads)."""
+    tables = aggregate_tables(find_runs(dirs), n_jobs)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    roc, auc = roc_tables(pairs, n_jobs)
-    table = summary_table(trials)
-    paths = {name: out / f"{name}.csv" for name in ("roc", "auc", "table", "timing")}
-    roc.to_csv(paths["roc"], index=False, float_format="%.6g")
-    auc.to_csv(paths["auc"], index=False, float_format="%.6g")
-    table.to_csv(paths["table"], index=False, float_format="%.6g")
-    timing_table(trials).to_csv(paths["timing"], index=False, float_format="%.4g")
+    paths = {name: out / f"{name}.csv" for name in SUMMARIES}
+    for name in SUMMARIES:
+        tables[name].to_csv(paths[name], index=False, float_format="%.4g" if name == "timing" else "%.6g")
     paths["table_md"] = out / "table.md"
-    paths["table_md"].write_text(markdown_table(table) + "\n")
+    paths["table_md"].write_text(markdown_table(tables["table"]) + "\n")
     for name, examples in load_examples(dirs).items():
         plural = name.replace("example_", "examples_")
         paths[plural] = out / f"{plural}.csv"

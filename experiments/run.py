@@ -12,6 +12,8 @@ Each run writes into its Hydra output directory:
 - ``timings.parquet``: per-trial timings (kept apart: they vary run to run,
   while the two files above are bit-identical for any ``n_jobs``,
   ``chunk_size`` and after a resume);
+- ``summary_*.parquet``: the run's rows of the aggregate tables (see
+  ``experiments.aggregate``);
 - ``config.yaml`` (resolved) and, with ``mc.examples > 0``, the geometry of
   the first trials for Fig. 1 and Fig. 2.
 
@@ -129,6 +131,7 @@ def run(cfg: DictConfig, output_dir: str | Path) -> Path:
     import pyarrow as pa
     import pyarrow.parquet as pq
 
+    from .aggregate import SUMMARIES, run_summaries, summary_path
     from .examples import example_tables
     from .trials import cell_key
 
@@ -167,8 +170,12 @@ def run(cfg: DictConfig, output_dir: str | Path) -> Path:
 
     cell = {**scenario, "method": cfg.matcher.method, "objective": cfg.matcher.objective,
             "use_cov": cfg.matcher.use_cov, "seed": seed, "cell_key": cell_key(scenario)}
+    # Summaries of older files must not outlive them.
+    for kind in SUMMARIES:
+        summary_path(out, kind).unlink(missing_ok=True)
     # Arrow tables straight through: this runs once per cell while the
     # workers wait, so it avoids pandas round trips.
+    tables = {}
     for kind in ("trials", "pairs", "timings"):
         table = pa.concat_tables([fresh[a, b][kind] if (a, b) in fresh
                                   else pq.read_table(f"{stem(a, b)}.{kind}.parquet") for a, b in bounds])
@@ -177,6 +184,9 @@ def run(cfg: DictConfig, output_dir: str | Path) -> Path:
             for i, (key, value) in enumerate(cell.items()):
                 table = table.add_column(i, key, pa.repeat(value, n_rows))
         _write_table_atomic(table, out / f"{kind}.parquet")
+        tables[kind] = table
+    for kind, summary in run_summaries(out, tables["trials"], tables["timings"], tables["pairs"]).items():
+        write_parquet_atomic(summary, summary_path(out, kind))
     if cfg.mc.examples:
         for name, table in example_tables(seed, scenario, matcher, range(cfg.mc.examples)).items():
             write_parquet_atomic(table, out / f"{name}.parquet")

@@ -60,6 +60,8 @@ def test_tau_rules_split_across_jobs_count_each_trial_once(tmp_path):
     assert pd.read_csv(tmp_path / "one_agg" / "auc.csv").n_trials.item() == 60
     # A run written before the scenario's later columns existed reads at their first-release values.
     shutil.copytree(tmp_path / "one", tmp_path / "older")
+    for path in (tmp_path / "older").glob("summary_*.parquet"):  # so old a run has no summaries either
+        path.unlink()
     trials = pd.read_parquet(tmp_path / "older" / "trials.parquet")
     assert (trials.layout == "strip").all() and (trials.p_detect == 0.9).all()
     trials.drop(columns=["layout", "p_detect"]).to_parquet(tmp_path / "older" / "trials.parquet")

@@ -35,6 +35,22 @@ def test_resume_after_deleting_chunks_is_identical(tmp_path):
     assert {n: digest(out / n) for n in before} == before
 
 
+def test_run_summaries_follow_the_run_and_aggregate_as_its_trials(tmp_path):
+    from experiments.aggregate import SUMMARIES, aggregate, summary_path
+
+    out = run(small(n_trials=12), tmp_path).parent
+    assert pd.read_parquet(summary_path(out, "auc")).n_trials.item() == 12
+    # More trials in the same directory: the run's summaries are rewritten with its files.
+    run(small(n_trials=20), tmp_path)
+    assert pd.read_parquet(summary_path(out, "auc")).n_trials.item() == 20
+    aggregate([out], tmp_path / "from_summaries")
+    for kind in SUMMARIES:
+        summary_path(out, kind).unlink()
+    aggregate([out], tmp_path / "from_trials")
+    for name in ("roc.csv", "auc.csv", "table.csv", "timing.csv", "table.md"):
+        assert (tmp_path / "from_summaries" / name).read_bytes() == (tmp_path / "from_trials" / name).read_bytes()
+
+
 def test_chunks_of_other_code_are_not_reused(tmp_path, monkeypatch):
     out = run(small(), tmp_path).parent
     before = set((out / "chunks").glob("*.trials.parquet"))
