@@ -31,9 +31,9 @@ def check_points(points, name: str, min_points: int = 3, geometry: bool = True) 
 def check_geometry(maps: np.ndarray, name: str, indexed: bool = False) -> None:
     """Raise a one-line ValueError when one of B finite (B, n, 2) maps has duplicate points or
     all its points on one line, naming it ``name`` (``name[b]`` when ``indexed``)."""
-    order = np.lexsort((maps[..., 1], maps[..., 0]), axis=-1)
-    ordered = np.take_along_axis(maps, order[..., None], axis=1)
-    duplicate = np.any(np.all(ordered[:, 1:] == ordered[:, :-1], axis=2), axis=1)
+    # Each point as one complex number (the same bits, no arithmetic): a sort puts equal points side by side.
+    z = np.sort(np.ascontiguousarray(maps).view(complex)[..., 0], axis=1)
+    duplicate = np.any(z[:, 1:] == z[:, :-1], axis=1)
     # All on one line: every point's offset from the first is parallel to
     # the longest such offset (to 1e-12 of the squared extent).
     d = maps - maps[:, :1]

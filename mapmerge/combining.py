@@ -153,6 +153,6 @@ def combine_batch(P: np.ndarray, Q: np.ndarray, pair_trial: np.ndarray, pairs: n
     index_q = np.concatenate([qi, np.full(ip.size, -1), iq])
     order = np.argsort(trial, kind="stable")  # sections already in row order within a trial
     count = np.bincount(trial, minlength=B)
-    return CombinedBatch(trial=trial[order], offsets=np.r_[0, np.cumsum(count)], points=points[order],
+    return CombinedBatch(trial=trial[order], offsets=np.concatenate(([0], np.cumsum(count))), points=points[order],
                          origin=section[order].astype(np.int8), index_p=index_p[order].astype(np.intp),
                          index_q=index_q[order].astype(np.intp), cov=None if row_cov is None else row_cov[order])

@@ -323,12 +323,12 @@ def resolve_correspondences(vertices_p, vertices_q, log_lr):
     # Only each group's size and best score are read, so the order within a group is free.
     order = np.argsort(keys)
     keys = keys[order]
-    start = np.r_[0, np.flatnonzero(keys[1:] != keys[:-1]) + 1]
+    start = np.flatnonzero(np.concatenate(([True], keys[1:] != keys[:-1])))
     uniq = np.stack(np.divmod(keys[start], n), axis=1)  # sorted by (p, q), as the keys
     # Only candidates sharing a landmark with another can lose; rank those.
     contested = np.flatnonzero((np.bincount(uniq[:, 0])[uniq[:, 0]] > 1) | (np.bincount(uniq[:, 1])[uniq[:, 1]] > 1))
     keep = np.ones(len(uniq), dtype=bool)
-    all_votes = np.diff(np.r_[start, keys.size])
+    all_votes = np.diff(np.concatenate((start, [keys.size])))
     if contested.size == 0:
         return uniq, keep, all_votes
     votes = all_votes[contested]
@@ -353,9 +353,12 @@ def resolve_correspondences(vertices_p, vertices_q, log_lr):
     return uniq, keep, all_votes
 
 
+_NO_RANK = np.iinfo(np.int64).max
+
+
 def _first_rank(landmark: np.ndarray, rank: np.ndarray) -> np.ndarray:
     """For each candidate, the best rank among the candidates of its landmark."""
-    best = np.full(int(landmark.max()) + 1, np.iinfo(np.int64).max)
+    best = np.full(int(landmark.max()) + 1, _NO_RANK)
     np.minimum.at(best, landmark, rank)
     return best[landmark]
 
@@ -459,10 +462,11 @@ def match_triangles(P: np.ndarray, Q: np.ndarray, sigma: np.ndarray, objective: 
         i, j, score, shift = (np.concatenate([p[k] for p in parts]) for k in range(4))
     else:
         trial, i, j, score, shift = _dense_pairs(tri_p, tri_q, vp, vq, sigma, objective, cyclic)
-    roll = (np.arange(3)[None, :] + shift[:, None].astype(np.intp)) % 3
     gp, gq = tri_p.offsets[trial] + i, tri_q.offsets[trial] + j
-    return TriangleMatch(tri_p, tri_q, trial, np.stack([i, j], axis=1).astype(np.intp), score,
-                         vp[gp], np.take_along_axis(vq[gq], roll, axis=1))
+    q_vertices = vq[gq]
+    if cyclic:  # q vertex (v + shift) % 3 pairs with p vertex v
+        q_vertices = q_vertices[np.arange(len(gq))[:, None], (np.arange(3) + shift[:, None].astype(np.intp)) % 3]
+    return TriangleMatch(tri_p, tri_q, trial, np.stack([i, j], axis=1).astype(np.intp), score, vp[gp], q_vertices)
 
 
 def _dense_pairs(tri_p, tri_q, vp, vq, sigma, objective, cyclic):

@@ -202,7 +202,7 @@ def triangulate_batch(maps: np.ndarray) -> TriangleBatch:
         trial = np.repeat(np.arange(len(maps)), count)
         flat = np.concatenate(simplices).astype(np.intp, copy=False)
         perm = groth_order(maps.reshape(-1, 2)[trial[:, None] * maps.shape[1] + flat])
-    return TriangleBatch(maps=maps, vertices=np.take_along_axis(flat, perm, axis=1),
+    return TriangleBatch(maps=maps, vertices=flat[np.arange(len(flat))[:, None], perm],
                          trial=trial, offsets=offsets)
 
 
