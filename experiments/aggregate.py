@@ -20,13 +20,16 @@ Each run also writes its own cell's rows of the first four
 (``summary_*.parquet``, by ``run_summaries``, in its worker while other
 jobs run), so a sweep's aggregation reads those small files rather than
 every run's trials and pairs. A cell pooled from several runs, or a run
-without them (older, or interrupted before writing them), is computed from
-its trials and pairs; the tables are the same bits either way.
+without them (older, or interrupted before writing them) or with
+summaries another version of this code wrote, is computed from its trials
+and pairs; the tables are the same bits either way.
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
+import hashlib
 from collections import Counter
 from pathlib import Path
 
@@ -63,10 +66,21 @@ def find_runs(dirs) -> list[Path]:
 
 #: The tables a run summarises for its own cell, each in ``summary_<kind>.parquet``.
 SUMMARIES = ("roc", "auc", "table", "timing")
+_DIGEST_KEY = b"mapmerge.summary_digest"
 
 
 def summary_path(run, kind: str) -> Path:
     return Path(run) / f"summary_{kind}.parquet"
+
+
+@functools.cache
+def summary_digest() -> bytes:
+    """Digest of the code that makes the summaries (this module and the library's metrics): a summary
+    written by other code is not read (its run is aggregated from its trials and pairs instead)."""
+    digest = hashlib.sha256()
+    for path in (Path(__file__), Path(metrics.__file__)):
+        digest.update(path.resolve().read_bytes())
+    return digest.hexdigest().encode()
 
 
 def runs_since(sweep_dir, started: float) -> list[Path]:
@@ -172,10 +186,15 @@ def _cell(table: pa.Table) -> tuple:
     return tuple(table.column(c)[0].as_py() for c in CELL)
 
 
-def run_summaries(run, trials: pa.Table, timings: pa.Table, pairs: pa.Table) -> dict[str, pd.DataFrame]:
-    """One run's rows of each table in ``SUMMARIES``, from the tables it writes to its files."""
+def run_summaries(run, trials: pa.Table, timings: pa.Table, pairs: pa.Table) -> dict[str, pa.Table]:
+    """One run's rows of each table in ``SUMMARIES``, from the tables it writes to its files, marked
+    with ``summary_digest``."""
     t, p = _joined(run, trials, timings, pairs)
-    return cell_tables(t.to_pandas(), {_cell(t): p})
+    out = {}
+    for kind, frame in cell_tables(t.to_pandas(), {_cell(t): p}).items():
+        table = pa.Table.from_pandas(frame, preserve_index=False)
+        out[kind] = table.replace_schema_metadata({**table.schema.metadata, _DIGEST_KEY: summary_digest()})
+    return out
 
 
 def cell_tables(trials: pd.DataFrame, pairs: dict[tuple, pd.DataFrame], n_jobs: int = 1) -> dict[str, pd.DataFrame]:
@@ -195,7 +214,9 @@ def aggregate_tables(runs, n_jobs: int = 1) -> dict[str, pd.DataFrame]:
     summaries = {}
     for run in runs:
         if all(summary_path(run, kind).exists() for kind in SUMMARIES):
-            summaries[run] = {kind: pq.read_table(summary_path(run, kind)) for kind in SUMMARIES}
+            tables = {kind: pq.read_table(summary_path(run, kind)) for kind in SUMMARIES}
+            if all((t.schema.metadata or {}).get(_DIGEST_KEY) == summary_digest() for t in tables.values()):
+                summaries[run] = tables
     cells = {run: _cell(summaries[run]["table"]) if run in summaries else _run_cell(run) for run in runs}
     runs_of = Counter(cells.values())
     lone = [run for run in runs if run in summaries and runs_of[cells[run]] == 1]

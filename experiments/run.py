@@ -186,7 +186,7 @@ def run(cfg: DictConfig, output_dir: str | Path) -> Path:
         _write_table_atomic(table, out / f"{kind}.parquet")
         tables[kind] = table
     for kind, summary in run_summaries(out, tables["trials"], tables["timings"], tables["pairs"]).items():
-        write_parquet_atomic(summary, summary_path(out, kind))
+        _write_table_atomic(summary, summary_path(out, kind))
     if cfg.mc.examples:
         for name, table in example_tables(seed, scenario, matcher, range(cfg.mc.examples)).items():
             write_parquet_atomic(table, out / f"{name}.parquet")

@@ -7,6 +7,8 @@ import sys
 import time
 
 import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
 import pytest
 
 from experiments.run import run
@@ -44,11 +46,18 @@ def test_run_summaries_follow_the_run_and_aggregate_as_its_trials(tmp_path):
     run(small(n_trials=20), tmp_path)
     assert pd.read_parquet(summary_path(out, "auc")).n_trials.item() == 20
     aggregate([out], tmp_path / "from_summaries")
+    # A summary written by other code (its digest differs) is not read, whatever it says.
+    auc = pq.read_table(summary_path(out, "auc"))
+    auc = auc.set_column(auc.schema.get_field_index("n_trials"), "n_trials", pa.array([999]))
+    pq.write_table(auc.replace_schema_metadata({**auc.schema.metadata, b"mapmerge.summary_digest": b"other"}),
+                   summary_path(out, "auc"))
+    aggregate([out], tmp_path / "other_code")
     for kind in SUMMARIES:
         summary_path(out, kind).unlink()
     aggregate([out], tmp_path / "from_trials")
     for name in ("roc.csv", "auc.csv", "table.csv", "timing.csv", "table.md"):
         assert (tmp_path / "from_summaries" / name).read_bytes() == (tmp_path / "from_trials" / name).read_bytes()
+        assert (tmp_path / "other_code" / name).read_bytes() == (tmp_path / "from_trials" / name).read_bytes()
 
 
 def test_chunks_of_other_code_are_not_reused(tmp_path, monkeypatch):
