@@ -87,12 +87,13 @@ def _run_key(cfg: DictConfig) -> str:
 
 
 @contextmanager
-def _backend(mc):
-    """joblib backend: local loky processes, or a dask.distributed cluster."""
+def _backend(mc, n_chunks: int):
+    """joblib backend: local loky processes (none for a single chunk: starting
+    workers costs more than half a second), or a dask.distributed cluster."""
     import joblib
 
     if mc.backend == "loky":
-        with joblib.parallel_config(backend="loky", n_jobs=mc.n_jobs):
+        with joblib.parallel_config(backend="loky", n_jobs=min(mc.n_jobs, n_chunks)):
             yield
         return
     from dask.distributed import Client, LocalCluster
@@ -208,7 +209,7 @@ def _run_chunks(cfg, scenario: dict, matcher: dict, todo, stem) -> dict:
     # dask workers may sit on other machines, so the driver writes theirs.
     local = cfg.mc.backend == "loky"
     fresh = {}
-    with _backend(cfg.mc):
+    with _backend(cfg.mc, len(todo)):
         jobs = (joblib.delayed(_chunk_job)(seed, scenario, matcher, a, b, stem(a, b) if local else None, os.getpid())
                 for a, b in todo)
         results = joblib.Parallel(return_as="generator_unordered")(jobs)
