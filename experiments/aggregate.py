@@ -128,7 +128,7 @@ def load(dirs, n_jobs: int = 1) -> tuple[pd.DataFrame, dict[tuple, pd.DataFrame]
         joblib.delayed(_load_run)(run) for run in find_runs(dirs))
     by_cell = {}
     for t, p in runs:
-        by_cell.setdefault(tuple(t.column(c)[0].as_py() for c in CELL), []).append((t, p))
+        by_cell.setdefault(_cell(t), []).append((t, p))
     # A run never repeats a trial: only a cell with several runs can hold one twice.
     for cell, parts in by_cell.items():
         if len(parts) > 1:
@@ -174,12 +174,18 @@ def _joined(run, t: pa.Table, timings: pa.Table, pairs: pa.Table) -> tuple[pa.Ta
     # The run wrote both files from one table, so their rows match one to one.
     if not all(t.column(k).equals(timings.column(k)) for k in ("trial", "tau")):
         raise ValueError(f"{run}: timings.parquet does not match trials.parquet row for row")
-    for key, value in LATER_COLUMNS.items():
-        if key not in t.column_names:
-            t = t.append_column(key, pa.repeat(value, t.num_rows))
+    t = _with_later_columns(t)
     for name in TIME_COLUMNS:
         t = t.append_column(name, timings.column(name))
     return t, pairs.to_pandas().assign(seed=t.column("seed")[0].as_py())
+
+
+def _with_later_columns(t: pa.Table) -> pa.Table:
+    """A run's trials with the columns it predates at their first-release values."""
+    for key, value in LATER_COLUMNS.items():
+        if key not in t.column_names:
+            t = t.append_column(key, pa.repeat(value, t.num_rows))
+    return t
 
 
 def _cell(table: pa.Table) -> tuple:
@@ -241,8 +247,7 @@ def _run_cell(run: Path) -> tuple:
 
     file = pq.ParquetFile(run / "trials.parquet")
     present = [c for c in CELL if c in file.schema_arrow.names]
-    row = file.read_row_group(0, columns=present).slice(0, 1).to_pylist()[0]
-    return tuple(row[c] if c in row else LATER_COLUMNS[c] for c in CELL)
+    return _cell(_with_later_columns(file.read_row_group(0, columns=present).slice(0, 1)))
 
 
 def _sample(fpr, tpr, thr):
