@@ -71,12 +71,13 @@ def test_chunks_of_other_code_are_not_reused(tmp_path, monkeypatch):
 
 #: Page faults of 5 batched merges of 200 20-landmark pairs, after a first one, in a fresh process.
 _FAULTS = """
-import resource, sys
+import sys
 import mapmerge as mm
 from experiments.trials import keep_freed_memory
 if sys.argv[1] == "keep" and not keep_freed_memory():
     print("unsupported")
     raise SystemExit
+import resource
 batch = mm.simulate.make_pairs(20, 0.75, 20.0, list(range(200)))
 mm.merge_batch(batch.p, batch.q, batch.sigma, method="paper")
 before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
