@@ -1,5 +1,7 @@
 """Outside baselines (mapmerge.baselines): Groth's voting and astroalign."""
 
+import threading
+
 import numpy as np
 import pytest
 
@@ -36,6 +38,39 @@ def test_astroalign_baseline_is_reproducible():
     sc = mm.simulate.make_pair(60, 0.75, 30, rng=0)
     c, d = (mm.merge_maps(sc.p, sc.q, sc.sigma, method="astroalign", rng=7) for _ in range(2))
     assert np.array_equal(c.pairs, d.pairs) and len(c.pairs) > 10
+    assert astroalign._np is np
+
+
+def test_astroalign_calls_from_two_threads_each_draw_from_their_own_generator(monkeypatch):
+    astroalign = pytest.importorskip("astroalign")
+    from mapmerge.baselines.astroalign import astroalign_pairs
+
+    sc = mm.simulate.make_pair(30, 0.75, 30, rng=0)
+    gens = {"first": np.random.default_rng(1), "second": np.random.default_rng(2)}
+    first_inside, second_inside, seen = threading.Event(), threading.Event(), {}
+    real = astroalign.find_transform
+
+    def find_transform(*args, **kwargs):
+        # The first call waits inside for the second (0.5 s at most): it can get there only if the
+        # two calls' swaps of astroalign's numpy overlap.
+        name = threading.current_thread().name
+        if name == "first":
+            first_inside.set()
+            second_inside.wait(0.5)
+        else:
+            second_inside.set()
+        seen[name] = astroalign._np.random.default_rng()
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(astroalign, "find_transform", find_transform)
+    threads = {name: threading.Thread(target=astroalign_pairs, args=(sc.p, sc.q, sc.sigma, gen), name=name)
+               for name, gen in gens.items()}
+    threads["first"].start()
+    assert first_inside.wait(10)
+    threads["second"].start()
+    for thread in threads.values():
+        thread.join()
+    assert seen["first"] is gens["first"] and seen["second"] is gens["second"]
     assert astroalign._np is np
 
 

@@ -9,7 +9,8 @@ the errors.
 Its RANSAC shuffles candidates with ``numpy.random.default_rng()`` and
 offers no seed argument. So that the baseline is reproducible, the
 ``default_rng`` astroalign sees returns the caller's generator for the
-duration of the call (and only then); nothing global is seeded. Without a
+duration of the call (and only then); nothing global is seeded. The swap is
+seen by the whole process, so calls from several threads take turns. Without a
 generator, one seeded by the two maps' bytes is used, so the same maps give
 the same answer.
 """
@@ -17,6 +18,7 @@ the same answer.
 from __future__ import annotations
 
 import hashlib
+import threading
 from contextlib import contextmanager
 
 import numpy as np
@@ -67,15 +69,21 @@ def merge(P, Q, sigma, tri_p: TriangleBatch, tri_q: TriangleBatch, rng=None) -> 
                             tri_p=tri_p, tri_q=tri_q, parts=parts)
 
 
+#: Held while astroalign sees a swapped numpy: one call at a time, so that no
+#: call draws from another's generator or restores another's swap.
+_SWAP_LOCK = threading.Lock()
+
+
 @contextmanager
 def _ransac_rng(astroalign, rng: np.random.Generator):
     """astroalign's view of numpy, whose ``random.default_rng()`` returns ``rng``, for one call."""
-    seen = astroalign._np
-    astroalign._np = _SeededNumpy(rng)
-    try:
-        yield
-    finally:
-        astroalign._np = seen
+    with _SWAP_LOCK:
+        seen = astroalign._np
+        astroalign._np = _SeededNumpy(rng)
+        try:
+            yield
+        finally:
+            astroalign._np = seen
 
 
 class _SeededNumpy:
