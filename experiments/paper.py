@@ -34,7 +34,8 @@ def _call(args: list[str]) -> None:
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description="Regenerate the paper's figures and tables.")
-    parser.add_argument("--quick", action="store_true", help="2,000 trials per ROC curve (default: 10,000 as in the paper)")
+    parser.add_argument("--quick", action="store_true",
+                        help="2,000 trials per ROC curve (default: 10,000 as in the paper)")
     parser.add_argument("--out", help="results directory (default results/paper; with --quick outputs/paper-quick, "
                         "so a quick run never overwrites the committed results)")
     parser.add_argument("overrides", nargs="*", help="extra Hydra overrides for every sweep")

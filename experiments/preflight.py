@@ -23,6 +23,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from .schema import CONF_DIR, ConfigError, register_configs, validate
 
+
 def preflight(argv: list[str]) -> None:
     """Compose and validate every job a command would launch, writing nothing.
 
@@ -70,11 +71,11 @@ def preflight(argv: list[str]) -> None:
     except ConfigError:
         raise
     except Exception as exc:  # Hydra/OmegaConf composition errors are multi-line
-        raise ConfigError(_one_line(exc, overrides)) from None
+        raise ConfigError(_one_line(exc)) from None
     validated(jobs)
 
 
-def _one_line(exc: BaseException, overrides: list[str]) -> str:
+def _one_line(exc: BaseException) -> str:
     """Hydra's composition error as one line naming the key and what is wrong."""
     causes = [exc]
     while causes[-1].__cause__ is not None:

@@ -43,8 +43,6 @@ from .schema import CONF_DIR, ConfigError, register_configs, validate
 log = logging.getLogger(__name__)
 
 
-
-
 def dirname(overrides: str) -> str:
     """A run directory name from Hydra's ``override_dirname``: its escapes
     dropped and ':' (from τ rules such as chi2:0.01) written as '-'."""

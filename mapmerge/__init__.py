@@ -39,6 +39,7 @@ __all__ = [
     "ResidualMatch",
     "Triangles",
     "align",
+    "exhaustive",
     "glrt",
     "log_tau_from_chi2",
     "merge_batch",

@@ -138,8 +138,8 @@ def test_read_map_takes_a_dataframe_and_covariances():
 def test_python_dash_m_runs_the_same_command(tmp_path):
     a, b, _ = _maps(tmp_path)
     out = tmp_path / "m.csv"
-    proc = subprocess.run([sys.executable, "-m", "mapmerge", "merge", str(a), str(b), "--sigma", "0.02", "-o", str(out)],
-                          capture_output=True, text=True)
+    proc = subprocess.run([sys.executable, "-m", "mapmerge", "merge", str(a), str(b), "--sigma", "0.02",
+                           "-o", str(out)], capture_output=True, text=True)
     assert proc.returncode == 0 and "matched (consensus)" in proc.stdout and out.exists()
 
 

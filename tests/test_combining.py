@@ -58,6 +58,7 @@ def test_information_weighted_fusion_matches_monte_carlo():
     # And merge_maps uses it: the same rows from one pair.
     res = mm.merge_maps(P[0], Q[0], 0.3, method="paper", cov_p=cov_p, cov_q=cov_q, tau=-20)
     fused_rows = res.origin == "fused"
+    R = mm.rotation(res.theta)
     assert res.matched and np.allclose(res.cov[fused_rows], np.linalg.inv(
         np.linalg.inv(cov_p[res.index_p[fused_rows]]) + np.linalg.inv(
-            np.einsum("ji,njk,kl->nil", mm.rotation(res.theta), cov_q[res.index_q[fused_rows]], mm.rotation(res.theta)))))
+            np.einsum("ji,njk,kl->nil", R, cov_q[res.index_q[fused_rows]], R))))
