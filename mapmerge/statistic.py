@@ -121,7 +121,7 @@ def min_cost(cp, cq, cyclic: bool = False, pairwise: bool = True):
             best, shift = r, np.zeros(r.shape, dtype=np.int8)
         else:
             better = r > best
-            best = np.where(better, r, best)
+            np.maximum(best, r, out=best)  # r where better; equal values are the same bits
             shift[better] = s
     # γ - r loses digits when the pair is nearly congruent; J* >= 0 exactly.
     return np.maximum(gamma - best, 0.0), shift
