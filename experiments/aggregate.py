@@ -96,7 +96,7 @@ def load_examples(dirs) -> dict[str, pd.DataFrame]:
         paths = sorted(run.glob("example_*.parquet"))
         if not paths:
             continue
-        cell = with_defaults(pd.read_parquet(run / "trials.parquet"))[CELL].iloc[0].to_dict()
+        cell = dict(zip(CELL, _run_cell(run)))
         for path in paths:
             table = pd.read_parquet(path)
             # The table's own columns win (its "kind" is p / q / merged / truth).
