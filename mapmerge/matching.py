@@ -27,8 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
+from scipy.sparse import coo_matrix, csr_matrix
+from scipy.sparse.csgraph import connected_components, reverse_cuthill_mckee
 from scipy.spatial import cKDTree
 from scipy.special import chdtri
 
@@ -211,10 +211,11 @@ def assign_sparse(log_lr: np.ndarray, pairs: np.ndarray, shape, objective: str =
     # leaves the optimum's value (such pairs lie far below any usual τ: log Λ < -27.7 at 10⁵ landmarks).
     worth = cost < 0
     pairs, cost = pairs[worth], cost[worth]
+    p_node, q_node = local_numbering(pairs, n_p, n_q)
     flow = min_cost_flow.SimpleMinCostFlow()
     flow.add_arcs_with_capacity_and_unit_cost(
-        np.concatenate([np.full(n_p, source), pairs[:, 0], np.arange(n_p), n_p + np.arange(n_q)]),
-        np.concatenate([np.arange(n_p), n_p + pairs[:, 1], np.full(n_p, sink), np.full(n_q, sink)]),
+        np.concatenate([np.full(n_p, source), p_node[pairs[:, 0]], np.arange(n_p), n_p + np.arange(n_q)]),
+        np.concatenate([np.arange(n_p), q_node[pairs[:, 1]], np.full(n_p, sink), np.full(n_q, sink)]),
         np.ones(n_p + len(pairs) + n_p + n_q, dtype=np.int64),
         np.concatenate([np.zeros(n_p, np.int64), cost, np.zeros(n_p + n_q, np.int64)]))
     supplies = np.zeros(sink + 1, dtype=np.int64)
@@ -225,6 +226,26 @@ def assign_sparse(log_lr: np.ndarray, pairs: np.ndarray, shape, objective: str =
         raise RuntimeError(f"the sparse LP's min-cost flow failed: {status}")
     chosen = pairs[flow.flows(np.arange(n_p, n_p + len(pairs))) > 0]
     return chosen[np.argsort(chosen[:, 0], kind="stable")].astype(np.intp)
+
+
+def local_numbering(pairs: np.ndarray, n_p: int, n_q: int) -> tuple[np.ndarray, np.ndarray]:
+    """Flow-graph node numbers of the p triangles (0..n_p-1) and q triangles (n_p..) that keep neighbours close.
+
+    Triangles come in Delaunay's order, scattered over the map, so the candidate pairs of one p triangle
+    point at q nodes far apart in memory. Numbered along a reverse Cuthill-McKee order of the candidate
+    graph (p and q triangles each in their order of it), OR-Tools' min-cost flow solves the same LP
+    1.3-1.6x faster at 10⁵ landmarks per map (9.4-9.7 -> 5.9-6.1 s on cyclic's graph, 7.3-7.7 -> 5.8 s on
+    paper's; a mixed p/q numbering gained less, 6.7 / 5.0 s). Exactly tied optima may resolve differently.
+    """
+    n = n_p + n_q
+    ends = np.concatenate([pairs[:, 0], n_p + pairs[:, 1]])
+    graph = csr_matrix((np.ones(len(ends), np.int8), (ends, np.roll(ends, len(pairs)))), shape=(n, n))
+    order = reverse_cuthill_mckee(graph, symmetric_mode=True)
+    is_p = order < n_p
+    p_node, q_node = np.empty(n_p, np.intp), np.empty(n_q, np.intp)
+    p_node[order[is_p]] = np.arange(n_p)
+    q_node[order[~is_p] - n_p] = n_p + np.arange(n_q)
+    return p_node, q_node
 
 
 #: Label-spreading sweeps ``candidate_components`` tries before it hands a

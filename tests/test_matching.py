@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 import mapmerge as mm
-from mapmerge.matching import assign, assign_sparse, correspondences
+from mapmerge.matching import assign, assign_sparse, correspondences, local_numbering
 
 from lp_reference import lapjvsp_assign
 
@@ -72,6 +72,23 @@ def test_sparse_lp_is_the_maximum_weight_matching_of_scipys_solver(rng, objectiv
         log_lr = -rng.exponential(3.0, size=len(pairs))
         np.testing.assert_array_equal(assign_sparse(log_lr, pairs, (n_p, n_q), objective),
                                       lapjvsp_assign(log_lr, pairs, (n_p, n_q), objective))
+
+
+def test_local_numbering_numbers_every_node_once_and_keeps_neighbours_close(rng):
+    """p triangles get 0..n_p-1 and q triangles n_p..n_p+n_q-1, each once (isolated ones too), and on a chain
+    scattered by a random order the numbering undoes the scatter."""
+    n_p, n_q = 60, 70
+    pairs = np.unique(np.stack([rng.integers(0, n_p - 5, 150), rng.integers(0, n_q - 5, 150)], axis=1), axis=0)
+    p_node, q_node = local_numbering(pairs, n_p, n_q)
+    np.testing.assert_array_equal(np.sort(p_node), np.arange(n_p))
+    np.testing.assert_array_equal(np.sort(q_node), n_p + np.arange(n_q))
+    # A path p0-q0-p1-q1-... under random labels: its arcs join nodes 1 apart in the numbering's p/q ranks.
+    n = 200
+    perm_p, perm_q = rng.permutation(n), rng.permutation(n)
+    chain = np.concatenate([np.stack([perm_p, perm_q], axis=1), np.stack([perm_p[1:], perm_q[:-1]], axis=1)])
+    p_node, q_node = local_numbering(chain, n, n)
+    assert np.abs(p_node[chain[:, 0]] - (q_node[chain[:, 1]] - n)).max() <= 1
+    assert np.abs(chain[:, 0] - chain[:, 1]).max() > 100
 
 
 def test_correspondences_count_the_dropped_rivals():
