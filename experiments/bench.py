@@ -49,7 +49,7 @@ from scipy.spatial import Delaunay
 #: Seconds and bytes of address space a 10^5-landmark merge may use.
 SCALE_LIMIT_S = 300
 SCALE_LIMIT_BYTES = 8 * 2**30
-SCALE_METHODS = ("paper", "cyclic", "consensus", "groth", "astroalign")
+SCALE_METHODS = ("paper", "cyclic", "consensus", "search", "groth", "astroalign")
 #: SNRs and seeds of the low-SNR timing (disjoint from every tuning and reported seed).
 LOW_SNRS = (10.0, 15.0, 20.0)
 LOW_SNR_SEED = 600_000

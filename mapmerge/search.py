@@ -85,6 +85,8 @@ MAX_SEARCH_LANDMARKS = 300
 #: nearest neighbour is largest in their neighbourhood: a choice that depends on
 #: the map's shape only, so the two maps mostly choose the same common landmarks.
 THIN_RANK = 3
+#: Nearest neighbours every landmark is first compared with in ``_thinned`` (speed only).
+THIN_PREFILTER = 16
 #: Coarsest vote cell, in landmark spacings (√(hull area / n) of p).
 COARSE_SPACING = 0.3
 #: Largest rotation grid (a finer step than this needs is not searched).
@@ -97,9 +99,18 @@ def _thinned(X: np.ndarray, m: int) -> np.ndarray:
     if len(X) <= m:
         return X
     tree = cKDTree(X)
-    rank = tree.query(X, k=THIN_RANK + 1)[0][:, THIN_RANK]
-    neighbours = tree.query(X, k=max(2, round(len(X) / m)) + 1)[1][:, 1:]
-    return X[np.all(rank[:, None] >= rank[neighbours], axis=1)]
+    k = max(2, round(len(X) / m))
+    # Most landmarks lose to one of their nearest few already, so only those that beat their
+    # ``THIN_PREFILTER`` nearest are checked against all k (the same landmarks: the nearest few are among the
+    # nearest k); at 10⁵ landmarks this is 0.3 s a map instead of 4 s.
+    first = min(k, THIN_PREFILTER)
+    dist, near = tree.query(X, k=max(first, THIN_RANK) + 1, workers=-1)
+    rank = dist[:, THIN_RANK]
+    (alive,) = np.nonzero(np.all(rank[:, None] >= rank[near[:, 1:first + 1]], axis=1))
+    if k > THIN_PREFILTER:
+        neighbours = tree.query(X[alive], k=k + 1, workers=-1)[1][:, 1:]
+        alive = alive[np.all(rank[alive, None] >= rank[neighbours], axis=1)]
+    return X[alive]
 
 
 def _hypotheses(Ps: np.ndarray, Qs: np.ndarray, r: float):

@@ -67,6 +67,19 @@ def test_search_on_large_maps_votes_with_thinned_maps_and_finds_the_transform():
     assert not mm.merge_maps(unrelated.p, unrelated.q, unrelated.sigma, method="search").matched
 
 
+@pytest.mark.parametrize("n", [1000, 7000])
+def test_thinned_maps_are_the_local_maxima_over_all_k_nearest(n):
+    """``_thinned`` checks all k nearest only for the landmarks that beat their nearest few: the same landmarks as
+    checking every landmark against all k (k = 3 at 1,000 landmarks, 23 at 7,000, beyond the first check's 16)."""
+    from scipy.spatial import cKDTree
+    X = mm.simulate.make_pair(n, 0.75, 20.0, rng=5).p
+    tree = cKDTree(X)
+    rank = tree.query(X, k=search.THIN_RANK + 1)[0][:, search.THIN_RANK]
+    neighbours = tree.query(X, k=round(n / search.MAX_SEARCH_LANDMARKS) + 1)[1][:, 1:]
+    expected = X[np.all(rank[:, None] >= rank[neighbours], axis=1)]
+    np.testing.assert_array_equal(search._thinned(X, search.MAX_SEARCH_LANDMARKS), expected)
+
+
 def test_search_memo_answers_repeated_searches_once_and_bit_for_bit(monkeypatch):
     sc = mm.simulate.make_pair(40, 0.75, 20, rng=7)
     first = search.search_pairs(sc.p, sc.q, sc.sigma)
