@@ -359,7 +359,7 @@ def posterior_association(P, x, cov_p, cov_x, log_prior: float, with_margin: boo
     return pairs[order], (margins[order] if with_margin else None)
 
 
-def associate(P, Q, alignment, sigma, cov_p=None, cov_q=None):
+def associate(P, Q, alignment, sigma, cov_p=None, cov_q=None, hulls=None):
     """One-to-one landmark association under a fitted transform (``posterior_association``).
 
     The pair covariance is p's noise plus q's brought into p's frame plus the
@@ -376,6 +376,9 @@ def associate(P, Q, alignment, sigma, cov_p=None, cov_q=None):
         covariance of (θ, t) (``metrics.KnownTransform`` for an exact one).
     sigma : float
     cov_p, cov_q : (n, 2, 2) ndarray, optional
+    hulls : (ConvexHull, ConvexHull), optional
+        The convex hulls of P and Q, when the caller has them (Qhull costs
+        about as much as the rest of an association of small maps).
 
     Returns
     -------
@@ -388,8 +391,9 @@ def associate(P, Q, alignment, sigma, cov_p=None, cov_q=None):
     x = (Q - alignment.t) @ rotation(alignment.theta)
     cov_x = mapped_covariance(x, alignment.theta, alignment.cov, sigma**2 if cov_q is None else cov_q)
     cov_p = _own_covariances(cov_p, len(P), sigma)
-    log_density = np.log(len(Q) / ConvexHull(Q).volume)
-    inside = inside_hull(ConvexHull(P), x)
+    hull_p, hull_q = (ConvexHull(P), ConvexHull(Q)) if hulls is None else hulls
+    log_density = np.log(len(Q) / hull_q.volume)
+    inside = inside_hull(hull_p, x)
     # The pair covariance of each q landmark among p's, with a typical p landmark.
     det_pair = np.linalg.det(cov_x[inside] + np.median(cov_p, axis=0))
     shared = SHARED_PRIOR
@@ -411,7 +415,8 @@ def associate(P, Q, alignment, sigma, cov_p=None, cov_q=None):
     return pairs, margin < AMBIGUITY
 
 
-def match_nfa(P, Q, alignment, pairs, n_hypotheses: int, sigma: float, cov_p=None, cov_q=None) -> float:
+def match_nfa(P, Q, alignment, pairs, n_hypotheses: int, sigma: float, cov_p=None, cov_q=None,
+              hull=None) -> float:
     """Number of false alarms of a match, a contrario (Moisan & Stival 2004).
 
     Under "unrelated maps", a q landmark mapped inside map p's hull finds a p
@@ -423,12 +428,13 @@ def match_nfa(P, Q, alignment, pairs, n_hypotheses: int, sigma: float, cov_p=Non
     with ``n_hypotheses`` hypotheses tried, NFA is the smallest
     ``n_hypotheses · C(N, k - 3) · α(d²_(k))^(k-3)`` over k. A match with
     NFA <= ``MATCH_NFA`` is expected to arise by chance at most that often.
+    ``hull``: P's convex hull, when the caller has it.
     """
     cov_p = _own_covariances(cov_p, len(P), sigma)
     x = (Q - alignment.t) @ rotation(alignment.theta)
     cov_x = mapped_covariance(x, alignment.theta, alignment.cov, sigma**2 if cov_q is None else cov_q)
     cov = cov_x + np.median(np.trace(cov_p, axis1=1, axis2=2) / 2) * np.eye(2)  # a typical p landmark
-    hull = ConvexHull(P)
+    hull = ConvexHull(P) if hull is None else hull
     inside = inside_hull(hull, x)
     density = P.shape[0] / hull.volume  # a 2-D hull's "volume" is its area
     unit_area = density * np.pi * np.sqrt(np.linalg.det(cov[inside | np.isin(np.arange(len(Q)), pairs[:, 1])])).mean()
@@ -482,7 +488,7 @@ def declared_triangles(vertices_p, vertices_q, pairs, P, Q, sigma):
     return tri_pairs, -cost / (2.0 * sigma**2)
 
 
-def _mixture_associate(P, Q, pairs, sigma, cov_p, cov_q):
+def _mixture_associate(P, Q, pairs, sigma, cov_p, cov_q, hulls):
     """Associate again at the mixture model's maximum-likelihood transform.
 
     Below about 15 dB a tenth of the associations can be wrong, and the fit
@@ -492,9 +498,9 @@ def _mixture_associate(P, Q, pairs, sigma, cov_p, cov_q):
     by its posterior instead of trusting one hard pairing.
     """
     al = align_pairs(P[pairs[:, 0]], Q[pairs[:, 1]], sigma)
-    s, hull = pair_noise(sigma, cov_p, cov_q), ConvexHull(P)
+    s, hull = pair_noise(sigma, cov_p, cov_q), hulls[0]
     theta, t = em_refine(P, Q, al.theta, al.t, s, bump_height(len(P), hull.volume, s, SHARED_PRIOR), hull)
-    return associate(P, Q, dataclasses.replace(al, theta=theta, t=t), sigma, cov_p, cov_q)
+    return associate(P, Q, dataclasses.replace(al, theta=theta, t=t), sigma, cov_p, cov_q, hulls)
 
 
 def consensus_pairs(P, Q, sigma, vp, vq, scores, cov_p=None, cov_q=None):
@@ -528,15 +534,16 @@ def consensus_pairs(P, Q, sigma, vp, vq, scores, cov_p=None, cov_q=None):
             pairs, n_conflicts = correspondences(vp[group], vq[group], scores[group])
             pairs = reject_outliers(P, Q, pairs, sigma, GATE_P)
     contested = np.zeros(len(pairs), dtype=bool)
+    hulls = (ConvexHull(P), ConvexHull(Q)) if pairs.shape[0] >= 3 else None
     for _ in range(ASSOCIATION_ROUNDS):
         if pairs.shape[0] < 3:
             break
         pairs, contested = associate(P, Q, align_pairs(P[pairs[:, 0]], Q[pairs[:, 1]], sigma), sigma,
-                                     cov_p, cov_q)
+                                     cov_p, cov_q, hulls)
     if pairs.shape[0] >= 3:
-        pairs, contested = _mixture_associate(P, Q, pairs, sigma, cov_p, cov_q)
+        pairs, contested = _mixture_associate(P, Q, pairs, sigma, cov_p, cov_q, hulls)
     if pairs.shape[0] < 3 or match_nfa(P, Q, align_pairs(P[pairs[:, 0]], Q[pairs[:, 1]], sigma), pairs,
-                                       len(scores), sigma, cov_p, cov_q) > MATCH_NFA:
+                                       len(scores), sigma, cov_p, cov_q, hulls[0]) > MATCH_NFA:
         return np.empty((0, 2), dtype=np.intp), np.empty(0, dtype=bool), n_conflicts
     return pairs, contested, n_conflicts
 

@@ -109,29 +109,30 @@ def max_log_lr(P, Q, sigma: float, p_shared: float, density: float):
         raise ValueError("sigma and density must be > 0 and p_shared in (0, 1)")
     s = np.sqrt(2.0) * sigma
     c = bump_height(density, 1.0, s, p_shared)
-    hull = ConvexHull(P)
-    theta, t = _grid_peaks(P, Q, s, c, p_shared, hull)
+    hull, tree_p = ConvexHull(P), cKDTree(P)
+    theta, t = _grid_peaks(P, Q, s, c, p_shared, hull, tree_p)
     best = (-np.inf, 0.0, np.zeros(2))
     for th, tt in zip(theta, t):
-        th, tt = em_refine(P, Q, th, tt, s, c, hull)
-        value = exact_log_lr(P, Q, th, tt, s, c, p_shared, hull)
+        th, tt = em_refine(P, Q, th, tt, s, c, hull, tree_p)
+        value = exact_log_lr(P, Q, th, tt, s, c, p_shared, hull, tree_p)
         if value > best[0]:
             best = (value, th, tt)
     return best
 
 
-def exact_log_lr(P, Q, theta, t, s, c, p_shared, hull) -> float:
-    """Λ at one transform (module docstring), with p's landmarks within ``EXACT_RADIUS`` s."""
+def exact_log_lr(P, Q, theta, t, s, c, p_shared, hull, tree_p=None) -> float:
+    """Λ at one transform (module docstring), with p's landmarks within ``EXACT_RADIUS`` s
+    (``tree_p``: P's k-d tree, if built)."""
     x = rotate(-theta, Q - t)
     x = x[inside_hull(hull, x)]
     if not len(x):
         return 0.0
-    d2 = _near_d2(P, x, EXACT_RADIUS * s)
+    d2 = _near_d2(P, x, EXACT_RADIUS * s, tree_p)
     mix = np.bincount(d2[0], np.exp(-d2[1] / (2 * s**2)), len(x))
     return float(len(x) * np.log(1 - p_shared) + np.sum(np.log1p(c * mix)))
 
 
-def null_log_tail(log_lr, n_inside, P, hull, s, c, p_shared) -> np.ndarray:
+def null_log_tail(log_lr, n_inside, P, hull, s, c, p_shared, tree_p=None) -> np.ndarray:
     """Upper bounds on log P(Λ >= log_lr) at one fixed transform when the maps are unrelated.
 
     Under "unrelated", the ``n_inside`` mapped q landmarks are independent
@@ -155,6 +156,8 @@ def null_log_tail(log_lr, n_inside, P, hull, s, c, p_shared) -> np.ndarray:
         p's hull.
     s, c, p_shared : float
         The mixture's pair noise, bump height and prior π (module docstring).
+    tree_p : scipy.spatial.cKDTree, optional
+        P's k-d tree, if built.
 
     Returns
     -------
@@ -172,11 +175,12 @@ def null_log_tail(log_lr, n_inside, P, hull, s, c, p_shared) -> np.ndarray:
     weight = np.tile(area, len(centres)) * len(P) / len(centres)
     keep = inside_hull(hull, x)
     x, weight = x[keep], weight[keep]
-    j, d2, _ = _near_d2(P, x, EXACT_RADIUS * s)
+    tree_p = cKDTree(P) if tree_p is None else tree_p
+    j, d2, _ = _near_d2(P, x, EXACT_RADIUS * s, tree_p)
     g = np.log1p(c * np.bincount(j, np.exp(-d2 / (2 * s**2)), len(x)))
     # A node lies in the discs of `cover` landmarks: its weight is shared among them (a partition of
     # unity over every landmark's disc, so a subsample of centres, scaled up, is unbiased).
-    cover = cKDTree(P).query_ball_point(x, EXACT_RADIUS * s * (1 + 1e-9), return_length=True)
+    cover = tree_p.query_ball_point(x, EXACT_RADIUS * s * (1 + 1e-9), return_length=True)
     weight = weight / (cover * hull.volume)
     # Any λ gives a bound: a coarse grid only loosens the best one slightly.
     lam = np.geomspace(0.02, 20.0, CHERNOFF_POINTS)
@@ -202,14 +206,15 @@ def _near_d2(P, x, radius, tree_p=None):
     return pairs["i"], pairs["v"] ** 2, pairs["j"]
 
 
-def em_refine(P, Q, theta, t, s, c, hull):
+def em_refine(P, Q, theta, t, s, c, hull, tree_p=None):
     """EM on the mixture from (θ, t): responsibilities of each (i, j), then the weighted closed-form fit.
 
     Returns the refined ``(theta, t)`` after ``EM_ROUNDS`` rounds (fewer when
     under two pairs lie within ``EXACT_RADIUS`` s, or once a round returns
-    its input exactly: every further round would too).
+    its input exactly: every further round would too). ``tree_p``: P's k-d
+    tree, if built.
     """
-    tree_p = cKDTree(P)
+    tree_p = cKDTree(P) if tree_p is None else tree_p
     for _ in range(EM_ROUNDS):
         x = rotate(-theta, Q - t)
         inside = np.flatnonzero(inside_hull(hull, x))
@@ -232,7 +237,7 @@ def em_refine(P, Q, theta, t, s, c, hull):
     return theta, t
 
 
-def _grid_peaks(P, Q, s, c, p_shared, hull):
+def _grid_peaks(P, Q, s, c, p_shared, hull, tree_p):
     """The ``GRID_PEAKS`` best (θ, t) of the grid, at distinct rotations.
 
     Per rotation, the pair translations are counted on cells ``GRID_STEP·s``
@@ -276,6 +281,6 @@ def _grid_peaks(P, Q, s, c, p_shared, hull):
         best_cell[k] = np.divmod(int(np.argmax(value)), side)
     # Back to the maps' own frames: q = R p + t with t = qm + t_centred - R pm.
     ts = qm + (best_cell - M) * h - rotate(thetas, pm[None])[:, 0]
-    exact = np.array([exact_log_lr(P, Q, th, t, s, c, p_shared, hull) for th, t in zip(thetas, ts)])
+    exact = np.array([exact_log_lr(P, Q, th, t, s, c, p_shared, hull, tree_p) for th, t in zip(thetas, ts)])
     order = np.argsort(-exact, kind="stable")[:GRID_PEAKS]
     return thetas[order], ts[order]

@@ -114,16 +114,17 @@ def _thinned(X: np.ndarray, m: int) -> np.ndarray:
     return X[alive]
 
 
-def _hypotheses(Ps: np.ndarray, Qs: np.ndarray, r: float):
+def _hypotheses(Ps: np.ndarray, Qs: np.ndarray, r: float, hull):
     """Coarse search: the fullest (θ, t) vote windows, the cell width, and the number of hypotheses at resolution r.
 
     The vote cells are ``r`` wide, or ``COARSE_SPACING`` landmark spacings
     when that is wider (low noise: a finer grid only costs time, the
     refinement finds the exact transform). The hypothesis count for the
     acceptance test is taken at resolution ``r`` whatever the grid.
+    ``hull``: Ps's convex hull.
     """
     reach = np.sqrt(np.max(np.sum((Ps - Ps.mean(axis=0)) ** 2, axis=1)))
-    spacing = np.sqrt(ConvexHull(Ps).volume / len(Ps))
+    spacing = np.sqrt(hull.volume / len(Ps))
     cell = max(r, COARSE_SPACING * spacing)
     n_theta = int(np.clip(np.ceil(2 * np.pi * reach / cell), 8, MAX_ROTATIONS))
     thetas = 2 * np.pi * np.arange(n_theta) / n_theta
@@ -214,23 +215,23 @@ def _refine(P, Q, thetas, ts, r, cell, sigma, tree=None):
     return out
 
 
-def _log_nfa(P, Q, hypotheses, s: float, n_hypotheses: float, hull):
+def _log_nfa(P, Q, hypotheses, s: float, n_hypotheses: float, hull, tree_p):
     """log NFA of each hypothesis after EM, the a contrario mixture test (module docstring, step 4),
-    and the hypotheses moved to the EM's transforms (``hull``: p's convex hull)."""
+    and the hypotheses moved to the EM's transforms (``hull``, ``tree_p``: p's convex hull and k-d tree)."""
     c = bump_height(len(P), hull.volume, s, MIXTURE_PRIOR)
     log_lr, n_inside, fitted, done = [], [], [], {}
     for al in hypotheses:
         # Hypotheses often refine to the very same transform, which EM would only repeat.
         start = np.float64(al.theta).tobytes() + np.asarray(al.t, float).tobytes()
         if start not in done:
-            theta, t = em_refine(P, Q, al.theta, al.t, s, c, hull)
-            done[start] = (theta, t, exact_log_lr(P, Q, theta, t, s, c, MIXTURE_PRIOR, hull),
+            theta, t = em_refine(P, Q, al.theta, al.t, s, c, hull, tree_p)
+            done[start] = (theta, t, exact_log_lr(P, Q, theta, t, s, c, MIXTURE_PRIOR, hull, tree_p),
                            int(np.sum(inside_hull(hull, rotate(-theta, Q - t)))))
         theta, t, lr, n_in = done[start]
         fitted.append(dataclasses.replace(al, theta=theta, t=t))
         log_lr.append(lr)
         n_inside.append(n_in)
-    return np.log(n_hypotheses) + null_log_tail(log_lr, n_inside, P, hull, s, c, MIXTURE_PRIOR), fitted
+    return np.log(n_hypotheses) + null_log_tail(log_lr, n_inside, P, hull, s, c, MIXTURE_PRIOR, tree_p), fitted
 
 
 def search_pairs(P, Q, sigma: float, cov_p=None, cov_q=None):
@@ -258,20 +259,21 @@ def search_pairs(P, Q, sigma: float, cov_p=None, cov_q=None):
     if r > MAX_NOISE_SPACING * np.sqrt(hull.volume / len(P)):
         return *empty, np.inf
     Ps, Qs = _thinned(P, MAX_SEARCH_LANDMARKS), _thinned(Q, MAX_SEARCH_LANDMARKS)
-    thetas, ts, cell, n_hyp = _hypotheses(Ps, Qs, r)
+    thetas, ts, cell, n_hyp = _hypotheses(Ps, Qs, r, hull if Ps is P else ConvexHull(Ps))
     refined = [al for al in _refine(Ps, Qs, thetas, ts, r, cell, sigma) if al is not None]
+    tree_p = cKDTree(P)
     if refined and (len(Ps) < len(P) or len(Qs) < len(Q)):
         # Refined on the sparse subsets first (their spacing tolerates the coarse cell's error), then on the maps.
         refined = [al for al in _refine(P, Q, [al.theta for al in refined], [al.t for al in refined], r, r, sigma,
-                                        cKDTree(P)) if al is not None]
+                                        tree_p) if al is not None]
     if not refined:
         return *empty, np.inf
-    log_nfa, refined = _log_nfa(P, Q, refined, r, n_hyp, hull)
+    log_nfa, refined = _log_nfa(P, Q, refined, r, n_hyp, hull, tree_p)
     best = int(np.argmin(log_nfa))
     nfa = float(np.exp(min(log_nfa[best], 700.0)))
     if log_nfa[best] > np.log(SEARCH_NFA):
         return *empty, nfa
-    pairs, contested = associate(P, Q, refined[best], sigma, cov_p, cov_q)
+    pairs, contested = associate(P, Q, refined[best], sigma, cov_p, cov_q, (hull, ConvexHull(Q)))
     if len(pairs) < 3:
         return *empty, nfa
     return pairs, contested, nfa

@@ -113,13 +113,13 @@ def test_search_declines_where_the_noise_is_comparable_to_the_landmark_spacing()
 
 def test_hypotheses_refined_together_give_the_alignments_refined_one_at_a_time():
     # Coarse hypotheses at 10 dB: some refine to the transform, some to chance alignments, some die.
-    from scipy.spatial import cKDTree
+    from scipy.spatial import ConvexHull, cKDTree
 
     checked = died = 0
     for rng in range(6):
         sc = mm.simulate.make_pair(60, 0.75, 10.0, rng=rng)
         r = np.sqrt(2.0) * sc.sigma
-        thetas, ts, cell, _ = search._hypotheses(sc.p, sc.q, r)
+        thetas, ts, cell, _ = search._hypotheses(sc.p, sc.q, r, ConvexHull(sc.p))
         thetas, ts = np.r_[thetas, thetas[0] + 2.0], np.r_[ts, ts[:1] + 1e6]  # one that pairs nothing
         together = search._refine(sc.p, sc.q, thetas, ts, r, cell, sc.sigma)
         # Nearest neighbours from a kd-tree (the large-map path) give the same alignments.
