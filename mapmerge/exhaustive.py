@@ -228,8 +228,8 @@ def em_refine(P, Q, theta, t, s, c, hull, tree_p=None):
         total = w.sum()
         wa, wb = (a * w[:, None]).sum(axis=0) / total, (b * w[:, None]).sum(axis=0) / total
         a, b = a - wa, b - wb
-        new = float(np.arctan2(np.sum(w * (a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])),
-                               np.sum(w * (a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]))))
+        new = float(np.arctan2((w * (a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])).sum(),
+                               (w * (a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1])).sum()))
         new_t = wb - rotate(new, wa[None])[0]
         if new == theta and np.array_equal(new_t, t):
             break

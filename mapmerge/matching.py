@@ -289,9 +289,9 @@ def component_blocks(i: np.ndarray, j: np.ndarray, values: np.ndarray, component
     rows, row_of, row_start = _ranks_within(component, i)
     cols, col_of, col_start = _ranks_within(component, j)
     order = np.argsort(component, kind="stable")
-    start = np.flatnonzero(np.r_[True, np.diff(component[order]) != 0, True])
+    start = [0, *(np.flatnonzero(np.diff(component[order])) + 1).tolist(), component.size]
     ri, ci, v = row_of[order], col_of[order], values[order]
-    row_start, col_start, start = row_start.tolist(), col_start.tolist(), start.tolist()
+    row_start, col_start = row_start.tolist(), col_start.tolist()
     for k in range(len(start) - 1):
         a, b = start[k], start[k + 1]
         r, c = rows[row_start[k]:row_start[k + 1]], cols[col_start[k]:col_start[k + 1]]
@@ -305,13 +305,15 @@ def _ranks_within(group: np.ndarray, x: np.ndarray):
     its group's; and where each group's distinct values start (one more entry at the end)."""
     order = np.lexsort((x, group))
     g, v = group[order], x[order]
-    first = np.r_[True, g[1:] != g[:-1]]
-    new = first | np.r_[True, v[1:] != v[:-1]]
+    first, new = np.ones(g.size, bool), np.ones(g.size, bool)
+    np.not_equal(g[1:], g[:-1], out=first[1:])
+    np.not_equal(v[1:], v[:-1], out=new[1:])
+    new |= first
     distinct = np.cumsum(new) - 1  # each element's index among all distinct (group, x)
     start = distinct[first]
     rank = np.empty_like(distinct)
     rank[order] = distinct - start[np.cumsum(first) - 1]
-    return v[new], rank, np.r_[start, distinct[-1] + 1]
+    return v[new], rank, np.append(start, distinct[-1] + 1)
 
 
 def correspondences(vertices_p, vertices_q, log_lr):

@@ -122,6 +122,29 @@ def test_candidate_components_are_the_connected_components_of_the_candidate_grap
         assert np.array_equal(label[:, None] == label[None], truth[:, None] == truth[None])
 
 
+def test_component_blocks_hold_each_components_candidates_between_its_sorted_rows_and_columns():
+    from mapmerge.matching import candidate_components, component_blocks
+
+    rng = np.random.default_rng(6)
+    for _ in range(200):
+        n_p, n_q = rng.integers(1, 30, 2)
+        pairs = np.unique(np.stack([rng.integers(0, n_p, 40), rng.integers(0, n_q, 40)], 1)[:rng.integers(0, 40)],
+                          axis=0)
+        pairs = pairs[rng.permutation(len(pairs))]
+        i, j, values = pairs[:, 0], pairs[:, 1], rng.random(len(pairs))
+        component = candidate_components(i, j, n_p, n_q)
+        blocks = list(component_blocks(i, j, values, component, -1.0))
+        # One block per component, in the order of the components' labels.
+        assert len(blocks) == np.unique(component).size
+        for label, (rows, cols, block) in zip(np.unique(component), blocks):
+            sel = component == label
+            np.testing.assert_array_equal(rows, np.unique(i[sel]))
+            np.testing.assert_array_equal(cols, np.unique(j[sel]))
+            expected = np.full((rows.size, cols.size), -1.0)
+            expected[np.searchsorted(rows, i[sel]), np.searchsorted(cols, j[sel])] = values[sel]
+            np.testing.assert_array_equal(block, expected)
+
+
 def test_the_lp_names_an_unknown_objective():
     for solve in (lambda: assign(np.zeros((3, 3)), "max"),
                   lambda: assign_sparse(np.zeros(2), np.array([[0, 0], [1, 1]]), (2, 2), "max")):
