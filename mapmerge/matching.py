@@ -344,12 +344,13 @@ def correspondences(vertices_p, vertices_q, log_lr):
     return uniq[keep].astype(np.intp), int(keep.size - np.count_nonzero(keep))
 
 
-def resolve_correspondences(vertices_p, vertices_q, log_lr):
+def resolve_correspondences(vertices_p, vertices_q, log_lr=None):
     """Candidate correspondences of declared pairs and which of them survive.
 
     The rule of ``correspondences``, returned in full so that callers
     holding many independent map pairs (landmark indices offset per pair)
-    can count conflicts per pair.
+    can count conflicts per pair. Without ``log_lr``, votes alone rank
+    (then the lower indices).
 
     Returns
     -------
@@ -362,7 +363,7 @@ def resolve_correspondences(vertices_p, vertices_q, log_lr):
     """
     if len(vertices_p) == 0:
         return np.empty((0, 2), dtype=np.int64), np.empty(0, dtype=bool), np.empty(0, dtype=np.int64)
-    vp, vq = np.ravel(vertices_p).astype(np.int64), np.ravel(vertices_q).astype(np.int64)
+    vp, vq = np.ravel(vertices_p).astype(np.int64, copy=False), np.ravel(vertices_q).astype(np.int64, copy=False)
     n = int(vq.max()) + 1
     keys = vp * n + vq
     # Only each group's size and best score are read, so the order within a group is free.
@@ -377,11 +378,14 @@ def resolve_correspondences(vertices_p, vertices_q, log_lr):
     if contested.size == 0:
         return uniq, keep, all_votes
     votes = all_votes[contested]
-    best = np.maximum.reduceat(np.repeat(log_lr, 3)[order], start)[contested]
     cp, cq = uniq[contested, 0], uniq[contested, 1]
     rank = np.empty(contested.size, dtype=np.int64)
-    # lexsort is stable and contested pairs are in (p, q) order, which breaks the remaining ties.
-    rank[np.lexsort((-best, -votes))] = np.arange(contested.size)
+    # Stable sorts, and contested pairs are in (p, q) order, which breaks the remaining ties.
+    if log_lr is None:
+        rank[np.argsort(-votes, kind="stable")] = np.arange(contested.size)
+    else:
+        best = np.maximum.reduceat(np.repeat(log_lr, 3)[order], start)[contested]
+        rank[np.lexsort((-best, -votes))] = np.arange(contested.size)
     # Greedy in rank order, in rounds: a candidate ranked first among the
     # live ones sharing its p and its q is exactly one the sequential greedy
     # keeps; keeping it kills its rivals. Conflicts are rare, so few rounds.

@@ -16,6 +16,14 @@ def test_groth_baseline_recovers_the_transform():
     assert err["success"] and err["wrong_pairs"] == 0 and err["correct_pairs"] > 50
 
 
+def test_groth_reports_the_glrt_of_each_pair_it_votes_with():
+    sc = mm.simulate.make_pair(60, 0.75, 20, rng=3)
+    res = mm.merge_maps(sc.p, sc.q, sc.sigma, method="groth")
+    log_lr = mm.glrt(res.tri_p.coords, res.tri_q.coords, sc.sigma)
+    assert len(res.triangle_pairs) > 100
+    np.testing.assert_array_equal(res.triangle_log_lr, log_lr[res.triangle_pairs[:, 0], res.triangle_pairs[:, 1]])
+
+
 def test_astroalign_baseline():
     pytest.importorskip("astroalign")
     sc = mm.simulate.make_pair(50, 0.75, 40, rng=1)

@@ -17,10 +17,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..alignment import paired_transforms, reject_outliers_batch
+from ..alignment import reject_outliers_batch
 from ..matching import resolve_correspondences
 from ..result import MergeBatch, build_batch
-from ..statistic import BLOCK_PAIRS
+from ..statistic import BLOCK_PAIRS, min_cost
 from ..triangles import TriangleBatch
 
 #: Groth's ε, the position tolerance of a vertex, in units of σ.
@@ -102,10 +102,10 @@ def groth_pairs(P, Q, sigma, tri_p: TriangleBatch, tri_q: TriangleBatch):
     tri_trial, i, j = (np.concatenate(v).astype(np.intp) for v in zip(*found))
     tri_pairs = np.stack([i, j], axis=1)
     vp, vq = tri_p.vertices[tri_p.offsets[tri_trial] + i], tri_q.vertices[tri_q.offsets[tri_trial] + j]
-    # Fitted in blocks: the same sums per pair, in arrays that stay in cache.
+    # The GLRT's cost of each pair in its vertex order, in blocks of arrays that stay in cache.
     cost = np.concatenate([np.empty(0)] + [
-        paired_transforms(P[tri_trial[a:a + BLOCK_PAIRS, None], vp[a:a + BLOCK_PAIRS]],
-                          Q[tri_trial[a:a + BLOCK_PAIRS, None], vq[a:a + BLOCK_PAIRS]])[2]
+        min_cost(P[tri_trial[a:a + BLOCK_PAIRS, None], vp[a:a + BLOCK_PAIRS]],
+                 Q[tri_trial[a:a + BLOCK_PAIRS, None], vq[a:a + BLOCK_PAIRS]], pairwise=False)[0]
         for a in range(0, len(vp), BLOCK_PAIRS)])
     pair_trial, pairs, n_conflicts = _vote(tri_trial, vp, vq, max(P.shape[1], Q.shape[1]), B)
     keep = reject_outliers_batch(P, Q, pair_trial, pairs, sigma, GROTH_GATE_P)
@@ -126,7 +126,7 @@ def _vote(tri_trial, vp, vq, n, B):
     """One-to-one correspondences by decreasing votes, at least two votes each, per map pair
     (landmark indices offset by ``n`` per map pair, so that one call serves them all)."""
     off = (tri_trial * n)[:, None]
-    uniq, keep, votes = resolve_correspondences(off + vp, off + vq, np.ones(len(vp)))
+    uniq, keep, votes = resolve_correspondences(off + vp, off + vq)
     winners = np.flatnonzero(keep & (votes >= 2))
     return ((uniq[winners, 0] // n).astype(np.intp), (uniq[winners] % n).astype(np.intp),
             np.bincount(uniq[~keep, 0] // n, minlength=B))
