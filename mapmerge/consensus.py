@@ -359,7 +359,7 @@ def posterior_association(P, x, cov_p, cov_x, log_prior: float, with_margin: boo
     return pairs[order], (margins[order] if with_margin else None)
 
 
-def associate(P, Q, alignment, sigma, cov_p=None, cov_q=None, hulls=None):
+def associate(P, Q, alignment, sigma, cov_p=None, cov_q=None, hulls=None, with_margin=True):
     """One-to-one landmark association under a fitted transform (``posterior_association``).
 
     The pair covariance is p's noise plus q's brought into p's frame plus the
@@ -379,12 +379,15 @@ def associate(P, Q, alignment, sigma, cov_p=None, cov_q=None, hulls=None):
     hulls : (ConvexHull, ConvexHull), optional
         The convex hulls of P and Q, when the caller has them (Qhull costs
         about as much as the rest of an association of small maps).
+    with_margin : bool, default True
+        Find the contested pairs (``posterior_association``'s margins: most of
+        its cost where many pairs compete); without, ``contested`` is None.
 
     Returns
     -------
     pairs : (K, 2) int ndarray
         Landmark pairs (p, q), sorted by p index.
-    contested : (K,) bool ndarray
+    contested : (K,) bool ndarray or None
         Pairs whose best alternative assignment is within ``AMBIGUITY`` in
         log-likelihood (e.g. two landmarks closer than the noise, which can swap).
     """
@@ -402,7 +405,8 @@ def associate(P, Q, alignment, sigma, cov_p=None, cov_q=None, hulls=None):
     for round_ in range(1, PRIOR_ROUNDS + 1):
         log_prior = np.log(shared / (1 - shared)) - log_density
         # Only the association returned needs its margins.
-        pairs, margin = posterior_association(P, x, cov_p, cov_x, log_prior, with_margin=round_ == PRIOR_ROUNDS,
+        pairs, margin = posterior_association(P, x, cov_p, cov_x, log_prior,
+                                              with_margin=with_margin and round_ == PRIOR_ROUNDS,
                                               candidates=candidates)
         if round_ == PRIOR_ROUNDS:
             break
@@ -412,7 +416,7 @@ def associate(P, Q, alignment, sigma, cov_p=None, cov_q=None, hulls=None):
         d2 = np.maximum(2 * (log_prior - np.log(2 * np.pi * np.sqrt(det_pair))), 0.0)
         recall = np.sum(1 - np.exp(-d2 / 2))
         shared = float(np.clip(np.sum(inside[pairs[:, 1]]) / max(recall, 1e-9), *SHARED_RANGE))
-    return pairs, margin < AMBIGUITY
+    return pairs, (margin < AMBIGUITY if with_margin else None)
 
 
 def match_nfa(P, Q, alignment, pairs, n_hypotheses: int, sigma: float, cov_p=None, cov_q=None,
@@ -533,13 +537,13 @@ def consensus_pairs(P, Q, sigma, vp, vq, scores, cov_p=None, cov_q=None):
         if group.size >= MIN_CONSENSUS:
             pairs, n_conflicts = correspondences(vp[group], vq[group], scores[group])
             pairs = reject_outliers(P, Q, pairs, sigma, GATE_P)
-    contested = np.zeros(len(pairs), dtype=bool)
     hulls = (ConvexHull(P), ConvexHull(Q)) if pairs.shape[0] >= 3 else None
+    # These rounds' contested pairs are never returned: the mixture step associates again.
     for _ in range(ASSOCIATION_ROUNDS):
         if pairs.shape[0] < 3:
             break
-        pairs, contested = associate(P, Q, align_pairs(P[pairs[:, 0]], Q[pairs[:, 1]], sigma), sigma,
-                                     cov_p, cov_q, hulls)
+        pairs, _ = associate(P, Q, align_pairs(P[pairs[:, 0]], Q[pairs[:, 1]], sigma), sigma, cov_p, cov_q, hulls,
+                             with_margin=False)
     if pairs.shape[0] >= 3:
         pairs, contested = _mixture_associate(P, Q, pairs, sigma, cov_p, cov_q, hulls)
     if pairs.shape[0] < 3 or match_nfa(P, Q, align_pairs(P[pairs[:, 0]], Q[pairs[:, 1]], sigma), pairs,

@@ -429,7 +429,8 @@ def transform_oracle_association(P, Q, theta, t, sigma: float, cov_p=None, cov_q
     from .consensus import associate
 
     known = KnownTransform(float(theta), np.asarray(t, dtype=float))
-    return associate(np.asarray(P, float), np.asarray(Q, float), known, float(sigma), cov_p, cov_q)[0]
+    return associate(np.asarray(P, float), np.asarray(Q, float), known, float(sigma), cov_p, cov_q,
+                     with_margin=False)[0]
 
 
 def oracle_pairs_batch(scenarios) -> dict:
