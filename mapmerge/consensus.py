@@ -336,27 +336,35 @@ def posterior_association(P, x, cov_p, cov_x, log_prior: float, with_margin: boo
         return empty
     # The common case: a candidate alone in its row and column, a component of its own (no contest).
     single = (np.bincount(i)[i] == 1) & (np.bincount(j)[j] == 1)
-    pairs, margins = [np.stack([i[single], j[single]], axis=1)], [np.full(int(single.sum()), np.inf)]
+    p_of, q_of, margins = [i[single]], [j[single]], [np.full(int(single.sum()), np.inf)]
     i, j, score = i[~single], j[~single], score[~single]
     comp = candidate_components(i, j, len(P), len(x)) if i.size else i
     for rows, cols, gain in component_blocks(i, j, score, comp, 0.0):
         r, c = linear_sum_assignment(gain, maximize=True)
-        keep = gain[r, c] > 0
-        best = gain[r, c].sum()
-        margin = np.full(int(keep.sum()), np.inf)
-        for m, (a, b) in enumerate(zip(r[keep], c[keep]) if with_margin else ()):
-            alt = gain.copy()
-            alt[a, b] = 0.0
-            ra, ca = linear_sum_assignment(alt, maximize=True)
-            used = alt[ra, ca] > 0
-            # Only a re-pairing of a or b is a contest; both left unshared is not a swap.
-            if np.any(used & ((ra == a) | (ca == b))):
-                margin[m] = best - alt[ra[used], ca[used]].sum()
-        pairs.append(np.stack([rows[r[keep]], cols[c[keep]]], axis=1))
-        margins.append(margin)
-    pairs, margins = np.concatenate(pairs).astype(np.intp), np.concatenate(margins)
+        value = gain[r, c]
+        keep = value > 0
+        p_of.append(rows[r[keep]])
+        q_of.append(cols[c[keep]])
+        if with_margin:
+            margins.append(_margins(gain, r[keep], c[keep], value.sum()))
+    pairs = np.stack([np.concatenate(p_of), np.concatenate(q_of)], axis=1).astype(np.intp)
     order = np.argsort(pairs[:, 0], kind="stable")
-    return pairs[order], (margins[order] if with_margin else None)
+    return pairs[order], (np.concatenate(margins)[order] if with_margin else None)
+
+
+def _margins(gain, r, c, best):
+    """Score lost by forbidding each pair (r, c) of one component's optimal assignment (value ``best``)
+    when the best assignment without it re-pairs one of its landmarks, inf otherwise."""
+    margin = np.full(len(r), np.inf)
+    for m, (a, b) in enumerate(zip(r, c)):
+        alt = gain.copy()
+        alt[a, b] = 0.0
+        ra, ca = linear_sum_assignment(alt, maximize=True)
+        used = alt[ra, ca] > 0
+        # Only a re-pairing of a or b is a contest; both left unshared is not a swap.
+        if np.any(used & ((ra == a) | (ca == b))):
+            margin[m] = best - alt[ra[used], ca[used]].sum()
+    return margin
 
 
 def associate(P, Q, alignment, sigma, cov_p=None, cov_q=None, hulls=None, with_margin=True):
