@@ -27,6 +27,7 @@ import hashlib
 import json
 import logging
 import os
+import socket
 import sys
 from contextlib import contextmanager
 from pathlib import Path
@@ -71,15 +72,17 @@ def _write_table_atomic(table, path: Path) -> None:
 
 
 def _run_key(cfg: DictConfig) -> str:
-    """Hash of everything that determines the trials' content, the code included
-    (a chunk left by an older version of the library is never reused)."""
-    from .trials import code_digest
+    """Hash of everything that determines the trials' content, the code and the machine's
+    arithmetic included (a chunk left by an older version of the library, or computed where
+    numpy's transcendental functions give other bits, is never reused)."""
+    from .trials import arithmetic_digest, code_digest
 
     key = {
         "scenario": OmegaConf.to_container(cfg.scenario),
         "matcher": OmegaConf.to_container(cfg.matcher),
         "seed": cfg.mc.seed,
         "code": code_digest(),
+        "arithmetic": arithmetic_digest(),
     }
     return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:12]
 
@@ -202,13 +205,16 @@ def _run_chunks(cfg, scenario: dict, matcher: dict, todo, stem) -> dict:
     import joblib
     from tqdm.auto import tqdm
 
+    from .trials import arithmetic_digest
+
     seed = cfg.mc.seed
     # Local workers write their own chunks (no DataFrames shipped back);
     # dask workers may sit on other machines, so the driver writes theirs.
     local = cfg.mc.backend == "loky"
     fresh = {}
     with _backend(cfg.mc, len(todo)):
-        jobs = (joblib.delayed(_chunk_job)(seed, scenario, matcher, a, b, stem(a, b) if local else None, os.getpid())
+        jobs = (joblib.delayed(_chunk_job)(seed, scenario, matcher, a, b, stem(a, b) if local else None, os.getpid(),
+                                           arithmetic_digest())
                 for a, b in todo)
         results = joblib.Parallel(return_as="generator_unordered")(jobs)
         with tqdm(
@@ -224,11 +230,16 @@ def _run_chunks(cfg, scenario: dict, matcher: dict, todo, stem) -> dict:
     return fresh
 
 
-def _chunk_job(seed, scenario, matcher, a, b, base: Path | None, driver: int):
+def _chunk_job(seed, scenario, matcher, a, b, base: Path | None, driver: int, arithmetic: str):
     """Run one chunk; write it when ``base`` is given, else return its frames. Its written
-    tables come back only to the ``driver`` process itself (n_jobs=1), never across processes."""
-    from .trials import run_chunk
+    tables come back only to the ``driver`` process itself (n_jobs=1), never across processes.
+    ``arithmetic``: the driver's ``arithmetic_digest``, which this worker's must equal."""
+    from .trials import arithmetic_digest, run_chunk
 
+    if arithmetic_digest() != arithmetic:
+        raise RuntimeError(f"worker {socket.gethostname()} computes numpy's sin/cos/exp/log/arctan2 with other bits "
+                           "than the driver (e.g. AVX-512 kernels on one only), so results would depend on which "
+                           "worker ran which chunk: use workers of one CPU type")
     frames = run_chunk(seed, scenario, matcher, a, b)
     if base is None:
         return a, b, frames, None

@@ -60,13 +60,29 @@ def test_run_summaries_follow_the_run_and_aggregate_as_its_trials(tmp_path):
         assert (tmp_path / "other_code" / name).read_bytes() == (tmp_path / "from_trials" / name).read_bytes()
 
 
-def test_chunks_of_other_code_are_not_reused(tmp_path, monkeypatch):
-    out = run(small(), tmp_path).parent
+@pytest.mark.parametrize("digest_name, other", [("code_digest", "another version of the library"),
+                                                 ("arithmetic_digest", "AVX-512 kernels")])
+def test_chunks_of_other_code_or_arithmetic_are_not_reused(tmp_path, monkeypatch, digest_name, other):
+    # One process: the patched digest must also be the workers' (see the next test).
+    out = run(small(n_jobs=1), tmp_path).parent
     before = set((out / "chunks").glob("*.trials.parquet"))
-    monkeypatch.setattr("experiments.trials.code_digest", lambda: "another version of the library")
-    run(small(), tmp_path)
+    monkeypatch.setattr(f"experiments.trials.{digest_name}", lambda: other)
+    run(small(n_jobs=1), tmp_path)
     after = set((out / "chunks").glob("*.trials.parquet"))
     assert len(after - before) == len(before)  # every chunk recomputed under a new key
+
+
+def test_a_worker_whose_arithmetic_differs_from_the_drivers_refuses_its_chunk():
+    from omegaconf import OmegaConf
+
+    from experiments.run import _chunk_job
+    from experiments.trials import arithmetic_digest
+
+    cfg = small()
+    args = (0, OmegaConf.to_container(cfg.scenario), OmegaConf.to_container(cfg.matcher), 0, 2, None, os.getpid())
+    assert _chunk_job(*args, arithmetic_digest())[2] is not None
+    with pytest.raises(RuntimeError, match=r"computes numpy's sin/cos/exp/log/arctan2 with other bits"):
+        _chunk_job(*args, "a driver with AVX-512 kernels")
 
 
 #: Page faults of 5 batched merges of 200 20-landmark pairs, after a first one, in a fresh process.
