@@ -342,17 +342,24 @@ def reject_outliers_batch(P, Q, pair_trial, pairs, sigma, gate_p: float = 1e-3) 
         idx = np.flatnonzero(keep & rejecting[pair_trial])
         if not idx.size:
             return keep
-        k, ak, bk = pair_trial[idx], xp[idx], xq[idx]
-        theta, t, _ = fit_transforms(k, ak, bk, B)
+        # Only the F map pairs still rejecting are fitted, numbered 0..F-1 (each one's sums are the same).
+        active = np.flatnonzero(rejecting)
+        F = len(active)
+        k, ak, bk = (np.cumsum(rejecting) - 1)[pair_trial[idx]], xp[idx], xq[idx]
+        theta, t, _ = fit_transforms(k, ak, bk, F)
         mu = 0.5 * (ak + rotate(-theta[k], (bk - t[k])[:, None, :])[:, 0])
-        cov = transform_covariances(k, mu, theta, sigma, rejecting)
+        cov = transform_covariances(k, mu, theta, sigma[active], np.ones(F, dtype=bool))
         # prediction_var of each p point under its own map pair's fit, then its standardised residual.
         pred = prediction_vars(ak, theta[k], cov[k])
         resid = np.sum((bk - rotate(theta[k], ak[:, None, :])[:, 0] - t[k]) ** 2, axis=1)
-        resid /= 2 * sigma[k] ** 2 + pred
-        # The worst of each map pair (the first of equal worst): rows sorted by map pair, then residual down.
-        order = np.lexsort((-resid, k))
-        first = order[np.r_[True, k[order][1:] != k[order][:-1]]]
-        out = resid[first] > gate
+        resid /= 2 * sigma[active][k] ** 2 + pred
+        # The worst of each map pair, the first of equal worst (a NaN only when all are, and then within the gate).
+        worst = np.full(F, -np.inf)
+        np.fmax.at(worst, k, resid)
+        hit = np.flatnonzero(resid == worst[k])
+        first = np.full(F, len(k))
+        np.minimum.at(first, k[hit], hit)
+        out = np.zeros(F, dtype=bool)
+        out[first < len(k)] = resid[first[first < len(k)]] > gate
         keep[idx[first[out]]] = False
-        rejecting[k[first[~out]]] = False
+        rejecting[active[~out]] = False

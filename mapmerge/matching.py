@@ -21,8 +21,6 @@ which the harness measures.
 from __future__ import annotations
 
 import functools
-import os
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,7 +30,7 @@ from scipy.sparse.csgraph import connected_components, reverse_cuthill_mckee
 from scipy.spatial import cKDTree
 from scipy.special import chdtri
 
-from .statistic import BLOCK_PAIRS, log_lr_from_cost, min_cost, pairwise_log_lr_blocks
+from .statistic import log_lr_from_cost, min_cost, pairwise_log_lr_blocks
 from .triangles import PARALLEL_MIN_LANDMARKS, TriangleBatch, triangulate_batches
 
 OBJECTIVES = ("lr", "loglr")
@@ -364,28 +362,50 @@ def resolve_correspondences(vertices_p, vertices_q, log_lr=None):
     if len(vertices_p) == 0:
         return np.empty((0, 2), dtype=np.int64), np.empty(0, dtype=bool), np.empty(0, dtype=np.int64)
     vp, vq = np.ravel(vertices_p).astype(np.int64, copy=False), np.ravel(vertices_q).astype(np.int64, copy=False)
-    n = int(vq.max()) + 1
-    keys = vp * n + vq
-    # Only each group's size and best score are read, so the order within a group is free.
-    order = np.argsort(keys)
-    keys = keys[order]
-    start = np.flatnonzero(np.concatenate(([True], keys[1:] != keys[:-1])))
-    uniq = np.stack(np.divmod(keys[start], n), axis=1)  # sorted by (p, q), as the keys
+    # Keyed by (p, q - p), which orders as (p, q) and spans a small range when both indices carry
+    # the same per-map-pair offset.
+    d = vq - vp
+    lo = int(d.min())
+    width = int(d.max()) - lo + 1
+    keys = vp * width + (d - lo)
+    score = None if log_lr is None else np.repeat(log_lr, 3)
+    # Only each group's size and best score are read, so the order within a group is free: count the
+    # keys in a table where their range is small, sort them where it is not (large maps).
+    n_keys = (int(vp.max()) + 1) * width
+    if n_keys <= KEY_TABLE_FACTOR * keys.size:
+        counts = np.bincount(keys, minlength=n_keys)
+        present = np.flatnonzero(counts)
+        all_votes = counts[present]
+        if score is not None:
+            best = np.full(n_keys, -np.inf)
+            np.maximum.at(best, keys, score)
+            best = best[present]
+    else:
+        order = np.argsort(keys)
+        keys = keys[order]
+        start = np.flatnonzero(np.concatenate(([True], keys[1:] != keys[:-1])))
+        present = keys[start]
+        all_votes = np.diff(np.concatenate((start, [keys.size])))
+        if score is not None:
+            best = np.maximum.reduceat(score[order], start)
+    p, d = np.divmod(present, width)
+    uniq = np.stack([p, p + d + lo], axis=1)  # sorted by (p, q), as the keys
     # Only candidates sharing a landmark with another can lose; rank those.
     contested = np.flatnonzero((np.bincount(uniq[:, 0])[uniq[:, 0]] > 1) | (np.bincount(uniq[:, 1])[uniq[:, 1]] > 1))
     keep = np.ones(len(uniq), dtype=bool)
-    all_votes = np.diff(np.concatenate((start, [keys.size])))
     if contested.size == 0:
         return uniq, keep, all_votes
     votes = all_votes[contested]
     cp, cq = uniq[contested, 0], uniq[contested, 1]
     rank = np.empty(contested.size, dtype=np.int64)
     # Stable sorts, and contested pairs are in (p, q) order, which breaks the remaining ties.
-    if log_lr is None:
-        rank[np.argsort(-votes, kind="stable")] = np.arange(contested.size)
+    if score is None:
+        # Vote counts are small: as 16-bit integers the stable sort is a radix sort (the same permutation).
+        behind = votes.max() - votes
+        rank[np.argsort(behind.astype(np.uint16) if behind.max() < 2**16 else behind, kind="stable")] = \
+            np.arange(contested.size)
     else:
-        best = np.maximum.reduceat(np.repeat(log_lr, 3)[order], start)[contested]
-        rank[np.lexsort((-best, -votes))] = np.arange(contested.size)
+        rank[np.lexsort((-best[contested], -votes))] = np.arange(contested.size)
     # Greedy in rank order, in rounds: a candidate ranked first among the
     # live ones sharing its p and its q is exactly one the sequential greedy
     # keeps; keeping it kills its rivals. Conflicts are rare, so few rounds.
@@ -403,6 +423,9 @@ def resolve_correspondences(vertices_p, vertices_q, log_lr=None):
 
 
 _NO_RANK = np.iinfo(np.int64).max
+#: ``resolve_correspondences`` counts candidates in a table when the range of
+#: their (p, q) keys is at most this many times their number, else sorts them.
+KEY_TABLE_FACTOR = 8
 
 
 def _first_rank(landmark: np.ndarray, rank: np.ndarray) -> np.ndarray:
@@ -546,7 +569,7 @@ def _sparse_pairs(tri_p, tri_q, vp, vq, b, sigma, objective, cyclic, log_tau, so
     P, Q = tri_p.maps[b], tri_q.maps[b]
     vp, vq = vp[tri_p.offsets[b]:tri_p.offsets[b + 1]], vq[tri_q.offsets[b]:tri_q.offsets[b + 1]]
     cand = candidate_pairs(P[vp], Q[vq], sigma, log_tau, SPARSE_NEIGHBOURS)
-    cost, shift = _candidate_costs(P, Q, vp, vq, cand, cyclic)
+    cost, shift = min_cost(P[vp], Q[vq], cyclic, pairs=(cand[:, 0], cand[:, 1]))
     score = log_lr_from_cost(cost, sigma)
     if solve_lp:
         chosen = assign_sparse(score, cand, (len(vp), len(vq)), objective)
@@ -555,17 +578,3 @@ def _sparse_pairs(tri_p, tri_q, vp, vq, b, sigma, objective, cyclic, log_tau, so
         return chosen[:, 0], chosen[:, 1], score[at], shift[at]
     keep = score >= log_tau  # every candidate that can be declared
     return cand[keep, 0], cand[keep, 1], score[keep], shift[keep]
-
-
-def _candidate_costs(P, Q, vp, vq, cand, cyclic):
-    """``min_cost`` of each candidate pair, in blocks of ``BLOCK_PAIRS`` that stay in cache, on parallel
-    threads (numpy releases the GIL); row by row, so the same bits as one call on all of them."""
-    def block(rows):
-        return min_cost(P[vp[cand[rows, 0]]], Q[vq[cand[rows, 1]]], cyclic, pairwise=False)
-
-    blocks = [slice(a, a + BLOCK_PAIRS) for a in range(0, len(cand), BLOCK_PAIRS)] or [slice(0, 0)]
-    if len(blocks) == 1:
-        return block(blocks[0])
-    with ThreadPoolExecutor(min(len(blocks), os.cpu_count() or 1)) as pool:
-        parts = list(pool.map(block, blocks))
-    return np.concatenate([c for c, _ in parts]), np.concatenate([s for _, s in parts])

@@ -25,7 +25,7 @@ import numpy as np
 from ._validation import check_sigma
 from .triangles import TriangleBatch, ccw_order
 
-#: Triangle pairs scored per numpy call by ``pairwise_log_lr_blocks``: small enough
+#: Triangle pairs scored per numpy call by ``pairwise_log_lr_blocks`` and ``min_cost``'s listed pairs: small enough
 #: that the temporaries stay in cache (64 maps of 20 landmarks; one big map).
 BLOCK_PAIRS = 2**16
 
@@ -76,7 +76,7 @@ def log_lr_from_cost(cost, sigma):
     return cost / -two_var
 
 
-def min_cost(cp, cq, cyclic: bool = False, pairwise: bool = True):
+def min_cost(cp, cq, cyclic: bool = False, pairwise: bool = True, pairs=None):
     """Minimum cost J* = γ - max over the allowed vertex shifts of √(α² + β²).
 
     Parameters
@@ -90,24 +90,37 @@ def min_cost(cp, cq, cyclic: bool = False, pairwise: bool = True):
     pairwise : bool
         Every p triangle against every q triangle; otherwise row m of ``cp``
         against row m of ``cq``.
+    pairs : (i, j) of two (M,) int ndarrays, optional
+        Triangle ``i[m]`` of (Tp, 3, 2) ``cp`` against triangle ``j[m]`` of
+        (Tq, 3, 2) ``cq`` (``pairwise`` is then ignored): each triangle is
+        centred once however many pairs it is in, the same bits as
+        ``pairwise=False`` on the gathered triangles.
 
     Returns
     -------
     cost : ndarray
-        (..., Tp, Tq) when ``pairwise``, else (..., M).
+        (..., Tp, Tq) when ``pairwise``, (M,) for ``pairs``, else (..., M).
     shift : int8 ndarray, same shape
         The cyclic shift ``s`` of q's vertices that attains it (q vertex
         ``(v + s) % 3`` pairs with p vertex ``v``); zero unless ``cyclic``.
     """
-    pc = cp - cp.mean(axis=-2, keepdims=True)
-    qc = cq - cq.mean(axis=-2, keepdims=True)
-    sp, sq = (pc**2).sum(axis=(-2, -1)), (qc**2).sum(axis=(-2, -1))
     # As complex numbers, conj(p̃_v)·q̃_v = -(α_v + iβ_v): one product per vertex.
-    zp, zq = np.empty(pc.shape[:-1], complex), np.empty(qc.shape[:-1], complex)
-    zp.real, zp.imag, zq.real, zq.imag = pc[..., 0], -pc[..., 1], qc[..., 0], qc[..., 1]
-    if pairwise:  # (..., Tp, 1, 3) against (..., 1, Tq, 3)
-        zp, sp = zp[..., :, None, :], sp[..., :, None]
-        zq, sq = zq[..., None, :, :], sq[..., None, :]
+    zp, sp = _centred(cp, conjugate=True)
+    zq, sq = _centred(cq)
+    if pairs is None:
+        if pairwise:  # (..., Tp, 1, 3) against (..., 1, Tq, 3)
+            zp, sp = zp[..., :, None, :], sp[..., :, None]
+            zq, sq = zq[..., None, :, :], sq[..., None, :]
+        return _min_over_shifts(zp, sp, zq, sq, cyclic)
+    # Gathered a block at a time, so that the temporaries stay in cache.
+    i, j = pairs
+    parts = [_min_over_shifts(zp[i[a:a + BLOCK_PAIRS]], sp[i[a:a + BLOCK_PAIRS]], zq[j[a:a + BLOCK_PAIRS]],
+                              sq[j[a:a + BLOCK_PAIRS]], cyclic) for a in range(0, max(len(i), 1), BLOCK_PAIRS)]
+    return np.concatenate([c for c, _ in parts]), np.concatenate([s for _, s in parts])
+
+
+def _min_over_shifts(zp, sp, zq, sq, cyclic: bool):
+    """``min_cost`` of centred triangles (``_centred``) paired elementwise, broadcasting."""
     gamma = 0.5 * (sp + sq)
     best, shift = None, None
     for s in range(3 if cyclic else 1):
@@ -125,6 +138,15 @@ def min_cost(cp, cq, cyclic: bool = False, pairwise: bool = True):
             shift[better] = s
     # γ - r loses digits when the pair is nearly congruent; J* >= 0 exactly.
     return np.maximum(gamma - best, 0.0), shift
+
+
+def _centred(c, conjugate: bool = False):
+    """Each triangle's vertices about their centroid as complex numbers (conjugated for p), and Σ ‖c̃_v‖²."""
+    # The centroid summed vertex by vertex, in order: the bits of ``mean(axis=-2)`` at a quarter of its cost.
+    centred = c - ((c[..., 0, :] + c[..., 1, :]) + c[..., 2, :])[..., None, :] / 3
+    z = np.empty(centred.shape[:-1], complex)
+    z.real, z.imag = centred[..., 0], -centred[..., 1] if conjugate else centred[..., 1]
+    return z, (centred**2).sum(axis=(-2, -1))
 
 
 def pairwise_log_lr_blocks(tri_p: TriangleBatch, tri_q: TriangleBatch, vp: np.ndarray, vq: np.ndarray,

@@ -33,17 +33,29 @@ def _sequential_greedy(vertices_p, vertices_q, log_lr):
     return sorted(keep), len(cand) - len(keep)
 
 
-def test_correspondences_equal_the_sequential_greedy():
+@pytest.mark.parametrize("scored", [True, False])
+@pytest.mark.parametrize("key_table_factor", [0, 10**9], ids=["sorted-keys", "key-table"])
+def test_correspondences_equal_the_sequential_greedy(monkeypatch, key_table_factor, scored):
+    """Both ways of grouping candidates (a sort, a table of keys) give the rule's answer, with
+    scores and by votes alone; the landmark indices carry offsets as a batch of map pairs has."""
+    monkeypatch.setattr(mm.matching, "KEY_TABLE_FACTOR", key_table_factor)
     rng = np.random.default_rng(7)
     for _ in range(1500):
         m, n = int(rng.integers(1, 12)), int(rng.integers(3, 25))
-        vp = np.array([rng.choice(n, 3, replace=False) for _ in range(m)])
-        vq = np.array([rng.choice(n, 3, replace=False) for _ in range(m)])
-        scores = np.round(rng.normal(size=m), 1)  # ties in score happen
-        pairs, n_conflicts = correspondences(vp, vq, scores)
-        keep, dropped = _sequential_greedy(vp, vq, scores)
-        assert [tuple(p) for p in pairs.tolist()] == keep
-        assert n_conflicts == dropped
+        vp = np.array([rng.choice(n, 3, replace=False) for _ in range(m)]) + 40 * int(rng.integers(0, 3))
+        vq = np.array([rng.choice(n, 3, replace=False) for _ in range(m)]) + 40 * int(rng.integers(0, 3))
+        scores = np.round(rng.normal(size=m), 1) if scored else np.zeros(m)  # ties in score happen
+        uniq, keep, votes = mm.matching.resolve_correspondences(vp, vq, scores if scored else None)
+        expected, dropped = _sequential_greedy(vp, vq, scores)
+        assert [tuple(p) for p in uniq[keep].tolist()] == expected
+        assert len(keep) - np.count_nonzero(keep) == dropped
+        counted = {}
+        for i, j in zip(vp.ravel().tolist(), vq.ravel().tolist()):
+            counted[(i, j)] = counted.get((i, j), 0) + 1
+        assert dict(zip(map(tuple, uniq.tolist()), votes.tolist())) == counted
+        assert list(map(tuple, uniq.tolist())) == sorted(counted)
+        if scored:
+            assert correspondences(vp, vq, scores)[1] == dropped
 
 
 def test_lp_objectives_and_the_sparse_lp_agree_with_brute_force(rng):

@@ -71,8 +71,9 @@ def groth_pairs(P, Q, sigma, tri_p: TriangleBatch, tri_q: TriangleBatch):
     """
     B = len(P)
     eps = GROTH_EPS_SIGMAS * sigma
-    Rp, Cp, tRp, tCp, sp = _invariants(tri_p.coords(), eps[tri_p.trial])
-    Rq, Cq, tRq, tCq, sq = _invariants(tri_q.coords(), eps[tri_q.trial])
+    coords_p, coords_q = tri_p.coords(), tri_q.coords()
+    Rp, Cp, tRp, tCp, sp = _invariants(coords_p, eps[tri_p.trial])
+    Rq, Cq, tRq, tCq, sq = _invariants(coords_q, eps[tri_q.trial])
     # Every p triangle against every q triangle of its own map pair, a block of map pairs at a time;
     # a large map pair alone, a slice of its p triangles at a time (row-major order either way).
     tp, tq = int(tri_p.count.max(initial=0)), int(tri_q.count.max(initial=0))
@@ -101,12 +102,9 @@ def groth_pairs(P, Q, sigma, tri_p: TriangleBatch, tri_q: TriangleBatch):
                                  "(about 480 bytes each); Groth's matcher is for small maps: use method='consensus'")
     tri_trial, i, j = (np.concatenate(v).astype(np.intp) for v in zip(*found))
     tri_pairs = np.stack([i, j], axis=1)
-    vp, vq = tri_p.vertices[tri_p.offsets[tri_trial] + i], tri_q.vertices[tri_q.offsets[tri_trial] + j]
-    # The GLRT's cost of each pair in its vertex order, in blocks of arrays that stay in cache.
-    cost = np.concatenate([np.empty(0)] + [
-        min_cost(P[tri_trial[a:a + BLOCK_PAIRS, None], vp[a:a + BLOCK_PAIRS]],
-                 Q[tri_trial[a:a + BLOCK_PAIRS, None], vq[a:a + BLOCK_PAIRS]], pairwise=False)[0]
-        for a in range(0, len(vp), BLOCK_PAIRS)])
+    gp, gq = tri_p.offsets[tri_trial] + i, tri_q.offsets[tri_trial] + j
+    vp, vq = tri_p.vertices[gp], tri_q.vertices[gq]
+    cost = min_cost(coords_p, coords_q, pairs=(gp, gq))[0]  # the GLRT's, in Groth order
     pair_trial, pairs, n_conflicts = _vote(tri_trial, vp, vq, max(P.shape[1], Q.shape[1]), B)
     keep = reject_outliers_batch(P, Q, pair_trial, pairs, sigma, GROTH_GATE_P)
     pair_trial, pairs = pair_trial[keep], pairs[keep]
