@@ -397,14 +397,12 @@ def resolve_correspondences(vertices_p, vertices_q, log_lr=None):
         return uniq, keep, all_votes
     votes = all_votes[contested]
     cp, cq = uniq[contested, 0], uniq[contested, 1]
-    rank = np.empty(contested.size, dtype=np.int64)
-    # Stable sorts, and contested pairs are in (p, q) order, which breaks the remaining ties.
+    # Contested pairs are in (p, q) order, which breaks the remaining ties. Ranks are only compared,
+    # so by votes alone a key that orders as (votes down, position) serves without a sort.
     if score is None:
-        # Vote counts are small: as 16-bit integers the stable sort is a radix sort (the same permutation).
-        behind = votes.max() - votes
-        rank[np.argsort(behind.astype(np.uint16) if behind.max() < 2**16 else behind, kind="stable")] = \
-            np.arange(contested.size)
+        rank = (votes.max() - votes) * contested.size + np.arange(contested.size)
     else:
+        rank = np.empty(contested.size, dtype=np.int64)
         rank[np.lexsort((-best[contested], -votes))] = np.arange(contested.size)
     # Greedy in rank order, in rounds: a candidate ranked first among the
     # live ones sharing its p and its q is exactly one the sequential greedy

@@ -108,9 +108,10 @@ def groth_pairs(P, Q, sigma, tri_p: TriangleBatch, tri_q: TriangleBatch):
     pair_trial, pairs, n_conflicts = _vote(tri_trial, vp, vq, max(P.shape[1], Q.shape[1]), B)
     keep = reject_outliers_batch(P, Q, pair_trial, pairs, sigma, GROTH_GATE_P)
     pair_trial, pairs = pair_trial[keep], pairs[keep]
-    to_q = np.full((B, P.shape[1]), -1)
-    to_q[pair_trial, pairs[:, 0]] = pairs[:, 1]
-    declared = np.all(to_q[tri_trial[:, None], vp] == vq, axis=1)
+    to_q = np.full(B * P.shape[1], -1)
+    to_q[pair_trial * P.shape[1] + pairs[:, 0]] = pairs[:, 1]
+    partner = to_q[(tri_trial * P.shape[1])[:, None] + vp] == vq
+    declared = partner[:, 0] & partner[:, 1] & partner[:, 2]
     return tri_trial, tri_pairs, -cost / (2 * sigma[tri_trial] ** 2), declared, pair_trial, pairs, n_conflicts
 
 
