@@ -58,6 +58,9 @@ EXACT_RADIUS = 5.0
 QUAD_RADIAL, QUAD_ANGLES, QUAD_MAX_CENTRES = 8, 16, 400
 #: Values of Chernoff's λ tried (log-spaced in [0.02, 20]).
 CHERNOFF_POINTS = 40
+#: Points in a leaf of a scipy k-d tree (``cKDTree``'s default ``leafsize``): ``_near_d2`` compares
+#: sets no larger than this directly.
+KDTREE_LEAF = 16
 
 
 def inside_hull(hull: ConvexHull, x: np.ndarray) -> np.ndarray:
@@ -200,7 +203,18 @@ def _gauss_legendre(n: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _near_d2(P, x, radius, tree_p=None):
-    """(j, d², i) of every p landmark within ``radius`` of each x_j (``tree_p``: P's tree, if built)."""
+    """(j, d², i) of every p landmark within ``radius`` of each x_j (``tree_p``: P's tree, if built).
+
+    The pairs come in the order of scipy's k-d tree pair search, and d² is its distance squared
+    (the order and bits of every sum over them). When both point sets fit in one leaf, that search
+    compares every point of x with every point of P, row by row: it is written out as such, the
+    same pairs, order and bits without building the trees.
+    """
+    if len(x) <= KDTREE_LEAF and len(P) <= KDTREE_LEAF:
+        dx, dy = x[:, None, 0] - P[:, 0], x[:, None, 1] - P[:, 1]
+        d2 = dx * dx + dy * dy
+        j, i = np.nonzero(d2 <= radius * radius)
+        return j, np.sqrt(d2[j, i]) ** 2, i
     pairs = cKDTree(x).sparse_distance_matrix(cKDTree(P) if tree_p is None else tree_p, radius,
                                               output_type="ndarray")
     return pairs["i"], pairs["v"] ** 2, pairs["j"]

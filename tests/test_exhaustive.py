@@ -119,3 +119,21 @@ def test_limit_experiment_resumes_without_recomputing_finished_pairs(tmp_path, m
     assert (table.found_rate == table.detected_rate).all() and (table.found_rate <= table.ml_accurate_rate).all()
     # The correspondence oracle misses the related seeds 4k + 1: 2 of the 8 per cell.
     assert list(table.correspondence_found_rate) == [0.75] * 4
+
+
+def test_pairs_of_small_sets_are_the_k_d_trees_pairs_in_its_order_and_bits(rng):
+    """Sets that fit in one k-d tree leaf are compared directly: the same pairs as scipy's pair
+    search, in its order, with its distances (every EM sum depends on both)."""
+    from scipy.spatial import cKDTree
+
+    from mapmerge.exhaustive import KDTREE_LEAF, _near_d2
+
+    for _ in range(3000):
+        m, n = rng.integers(1, KDTREE_LEAF + 1, 2)
+        x, P = rng.uniform(0, 1, (m, 2)) * 10.0 ** rng.uniform(-3, 3), rng.uniform(0, 1, (n, 2))
+        x[: m // 3] = P[rng.integers(0, n, m // 3)] + rng.normal(0, 1e-9, (m // 3, 2))  # some on top of p's
+        radius = float(rng.uniform(0.01, 1.2))
+        tree = cKDTree(x).sparse_distance_matrix(cKDTree(P), radius, output_type="ndarray")
+        j, d2, i = _near_d2(P, x, radius)
+        assert j.tolist() == tree["i"].tolist() and i.tolist() == tree["j"].tolist()
+        assert d2.tobytes() == (tree["v"] ** 2).tobytes()
