@@ -65,7 +65,7 @@ def glrt(coords_p, coords_q, sigma, cyclic: bool = False) -> np.ndarray:
     if cyclic:
         cp = np.take_along_axis(cp, ccw_order(cp)[..., None], axis=1)
         cq = np.take_along_axis(cq, ccw_order(cq)[..., None], axis=1)
-    cost, _ = min_cost(cp, cq, cyclic, pairwise=True)
+    cost, _ = min_cost(cp, cq, cyclic)
     return log_lr_from_cost(cost, sigma)
 
 
@@ -76,7 +76,7 @@ def log_lr_from_cost(cost, sigma):
     return cost / -two_var
 
 
-def min_cost(cp, cq, cyclic: bool = False, pairwise: bool = True, pairs=None):
+def min_cost(cp, cq, cyclic: bool = False, pairs=None):
     """Minimum cost J* = γ - max over the allowed vertex shifts of √(α² + β²).
 
     Parameters
@@ -87,19 +87,16 @@ def min_cost(cp, cq, cyclic: bool = False, pairwise: bool = True, pairs=None):
         correspondence. Leading batch axes broadcast.
     cyclic : bool
         Best of the three cyclic shifts of q's vertices.
-    pairwise : bool
-        Every p triangle against every q triangle; otherwise row m of ``cp``
-        against row m of ``cq``.
     pairs : (i, j) of two (M,) int ndarrays, optional
-        Triangle ``i[m]`` of (Tp, 3, 2) ``cp`` against triangle ``j[m]`` of
-        (Tq, 3, 2) ``cq`` (``pairwise`` is then ignored): each triangle is
-        centred once however many pairs it is in, the same bits as
-        ``pairwise=False`` on the gathered triangles.
+        Only triangle ``i[m]`` of (Tp, 3, 2) ``cp`` against triangle ``j[m]``
+        of (Tq, 3, 2) ``cq``, each triangle centred once however many pairs
+        it is in (the bits of the same pairs in the full matrix); default:
+        every p triangle against every q triangle.
 
     Returns
     -------
     cost : ndarray
-        (..., Tp, Tq) when ``pairwise``, (M,) for ``pairs``, else (..., M).
+        (..., Tp, Tq), or (M,) for ``pairs``.
     shift : int8 ndarray, same shape
         The cyclic shift ``s`` of q's vertices that attains it (q vertex
         ``(v + s) % 3`` pairs with p vertex ``v``); zero unless ``cyclic``.
@@ -107,11 +104,8 @@ def min_cost(cp, cq, cyclic: bool = False, pairwise: bool = True, pairs=None):
     # As complex numbers, conj(p̃_v)·q̃_v = -(α_v + iβ_v): one product per vertex.
     zp, sp = _centred(cp, conjugate=True)
     zq, sq = _centred(cq)
-    if pairs is None:
-        if pairwise:  # (..., Tp, 1, 3) against (..., 1, Tq, 3)
-            zp, sp = zp[..., :, None, :], sp[..., :, None]
-            zq, sq = zq[..., None, :, :], sq[..., None, :]
-        return _min_over_shifts(zp, sp, zq, sq, cyclic)
+    if pairs is None:  # (..., Tp, 1, 3) against (..., 1, Tq, 3)
+        return _min_over_shifts(zp[..., :, None, :], sp[..., :, None], zq[..., None, :, :], sq[..., None, :], cyclic)
     # Gathered a block at a time, so that the temporaries stay in cache.
     i, j = pairs
     parts = [_min_over_shifts(zp[i[a:a + BLOCK_PAIRS]], sp[i[a:a + BLOCK_PAIRS]], zq[j[a:a + BLOCK_PAIRS]],
@@ -188,7 +182,7 @@ def pairwise_log_lr_blocks(tri_p: TriangleBatch, tri_q: TriangleBatch, vp: np.nd
         tp, tq = count_p[trials].max(), count_q[trials].max()
         cp = flat_p[trials[:, None, None] * n_p + pad_p[trials, :tp]]
         cq = flat_q[trials[:, None, None] * n_q + pad_q[trials, :tq]]
-        cost, shift = min_cost(cp, cq, cyclic, pairwise=True)
+        cost, shift = min_cost(cp, cq, cyclic)
         yield trials, log_lr_from_cost(cost, sigma[trials][:, None, None]), shift
 
 

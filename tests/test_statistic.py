@@ -137,8 +137,8 @@ def test_glrt_matrix_equals_pairwise_fits(rng):
 
 @pytest.mark.parametrize("cyclic", [False, True])
 def test_cost_of_listed_pairs_is_bitwise_the_cost_of_every_pair(rng, cyclic):
-    """``min_cost(..., pairs=)`` (each triangle centred once, blocks of pairs) gives the same bits as the
-    pairwise matrix and as row-against-row on the gathered triangles."""
+    """``min_cost(..., pairs=)`` (each triangle centred once, blocks of pairs) gives the bits of the
+    full matrix, and of each pair's triangles alone."""
     from mapmerge.statistic import BLOCK_PAIRS, min_cost
 
     cp = rng.normal(size=(60, 3, 2)) * rng.uniform(0.01, 100, (60, 1, 1)) + rng.normal(0, 1e3, (60, 1, 2))
@@ -146,7 +146,8 @@ def test_cost_of_listed_pairs_is_bitwise_the_cost_of_every_pair(rng, cyclic):
     i, j = rng.integers(0, 60, BLOCK_PAIRS + 999), rng.integers(0, 40, BLOCK_PAIRS + 999)  # two blocks
     cost, shift = min_cost(cp, cq, cyclic, pairs=(i, j))
     full_cost, full_shift = min_cost(cp, cq, cyclic)
-    rows_cost, rows_shift = min_cost(cp[i], cq[j], cyclic, pairwise=False)
+    rows = np.arange(len(i))
+    rows_cost, rows_shift = min_cost(cp[i], cq[j], cyclic, pairs=(rows, rows))
     assert cost.tobytes() == full_cost[i, j].tobytes() == rows_cost.tobytes()
     assert shift.tobytes() == full_shift[i, j].tobytes() == rows_shift.tobytes()
     none = min_cost(cp, cq, cyclic, pairs=(i[:0], j[:0]))
