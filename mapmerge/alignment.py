@@ -359,7 +359,8 @@ def reject_outliers_batch(P, Q, pair_trial, pairs, sigma, gate_p: float = 1e-3) 
         hit = np.flatnonzero(resid == worst[k])
         first = np.full(F, len(k))
         np.minimum.at(first, k[hit], hit)
+        found = first < len(k)
         out = np.zeros(F, dtype=bool)
-        out[first < len(k)] = resid[first[first < len(k)]] > gate
+        out[found] = resid[first[found]] > gate
         keep[idx[first[out]]] = False
         rejecting[active[~out]] = False
