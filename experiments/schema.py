@@ -146,7 +146,7 @@ def validate(cfg) -> None:
     from mapmerge.datasets import SOURCES
     from mapmerge.matching import OBJECTIVES, resolve_log_tau
     from mapmerge.merging import METHODS
-    from mapmerge.simulate import LAYOUTS
+    from mapmerge.simulate import LAYOUTS, MAX_SNR_DB
 
     s, m, mc = cfg.scenario, cfg.matcher, cfg.mc
     if s.kind not in KINDS:
@@ -166,8 +166,8 @@ def validate(cfg) -> None:
         _fail("scenario.overlap", s.overlap, "must be in (0, 1]")
     if math.floor(s.overlap * s.n_landmarks + 0.5) < 3:
         _fail("scenario.overlap", s.overlap, "overlap * n_landmarks must round to >= 3 common landmarks")
-    if not math.isfinite(s.snr_db):
-        _fail("scenario.snr_db", s.snr_db, "must be a finite number of dB")
+    if not (math.isfinite(s.snr_db) and abs(s.snr_db) <= MAX_SNR_DB):
+        _fail("scenario.snr_db", s.snr_db, f"must be a number of dB in [-{MAX_SNR_DB:g}, {MAX_SNR_DB:g}]")
     if not (math.isfinite(s.aspect) and s.aspect > 0):
         _fail("scenario.aspect", s.aspect, "must be a positive number")
     if s.layout not in LAYOUTS:

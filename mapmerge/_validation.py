@@ -6,6 +6,33 @@ import math
 
 import numpy as np
 
+#: Largest coordinate magnitude and σ accepted, and the smallest map extent and σ (in map units). Squared
+#: distances, their products and qhull's lifted coordinates stay far from overflow and underflow within
+#: them (qhull fails on coordinates near 1e160); rescaling a map's units brings any real map inside.
+MAX_MAGNITUDE = 1e50
+MIN_MAGNITUDE = 1e-50
+
+
+def float_array(values, message: str) -> np.ndarray:
+    """``values`` as a float ndarray, or ``ValueError(message)`` when they are not real numbers
+    (complex values too: casting would silently drop their imaginary parts)."""
+    try:
+        arr = np.asarray(values)
+        if np.iscomplexobj(arr):
+            raise ValueError
+        return arr.astype(float, copy=False)
+    except (TypeError, ValueError):
+        raise ValueError(message) from None
+
+
+def check_finite(arr: np.ndarray, name: str) -> None:
+    """Raise a one-line ValueError unless every coordinate of ``arr`` is finite and at most ``MAX_MAGNITUDE``."""
+    if arr.size and not np.max(np.abs(arr)) <= MAX_MAGNITUDE:  # NaN fails the comparison too
+        if not np.all(np.isfinite(arr)):
+            raise ValueError(f"{name} contains NaN or inf; all coordinates must be finite")
+        raise ValueError(f"{name} has coordinates of magnitude up to {np.max(np.abs(arr)):.3g}; "
+                         f"at most {MAX_MAGNITUDE:g} is allowed (rescale the map's units)")
+
 
 def check_points(points, name: str, min_points: int = 3, geometry: bool = True) -> np.ndarray:
     """Return ``points`` as a float (n, 2) array or raise a one-line ValueError.
@@ -13,16 +40,12 @@ def check_points(points, name: str, min_points: int = 3, geometry: bool = True) 
     ``geometry`` adds the checks a triangulation needs: no duplicate points and
     not all points on one line.
     """
-    try:
-        arr = np.asarray(points, dtype=float)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be an (n, 2) array of numbers") from None
+    arr = float_array(points, f"{name} must be an (n, 2) array of real numbers")
     if arr.ndim != 2 or arr.shape[1] != 2:
         raise ValueError(f"{name} must have shape (n, 2), got {arr.shape}")
     if arr.shape[0] < min_points:
         raise ValueError(f"{name} needs at least {min_points} points, got {arr.shape[0]}")
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} contains NaN or inf; all coordinates must be finite")
+    check_finite(arr, name)
     if geometry:
         check_geometry(arr[None], name)
     return arr
@@ -39,8 +62,11 @@ def check_geometry(maps: np.ndarray, name: str, indexed: bool = False) -> None:
     d = maps - maps[:, :1]
     far = d[np.arange(len(maps)), np.argmax(d[..., 0] ** 2 + d[..., 1] ** 2, axis=1)][:, None]
     cross = np.abs(d[..., 0] * far[..., 1] - d[..., 1] * far[..., 0])
-    collinear = np.max(cross, axis=1) <= 1e-12 * (far[:, 0, 0] ** 2 + far[:, 0, 1] ** 2)
+    extent2 = far[:, 0, 0] ** 2 + far[:, 0, 1] ** 2
+    collinear = np.max(cross, axis=1) <= 1e-12 * extent2
+    small = extent2 < MIN_MAGNITUDE**2
     for bad, message in ((duplicate, "contains duplicate points; landmarks must be distinct"),
+                         (small, f"points span less than {MIN_MAGNITUDE:g}; rescale the map's units"),
                          (collinear, "points are all collinear; a triangulation needs 2-D spread")):
         if bad.any():
             raise ValueError(f"{name}[{int(np.argmax(bad))}] {message}" if indexed else f"{name} {message}")
@@ -54,7 +80,17 @@ def check_sigma(sigma, name: str = "sigma") -> float:
         raise ValueError(f"{name} must be a positive number, got {sigma!r}") from None
     if not math.isfinite(value) or value <= 0:
         raise ValueError(f"{name} must be a positive finite number, got {sigma!r}")
+    if not MIN_MAGNITUDE <= value <= MAX_MAGNITUDE:
+        check_sigma_range(np.array([value]), name)
     return value
+
+
+def check_sigma_range(sigma: np.ndarray, name: str = "sigma") -> None:
+    """Raise a one-line ValueError unless every positive σ lies in [``MIN_MAGNITUDE``, ``MAX_MAGNITUDE``]."""
+    if np.any((sigma < MIN_MAGNITUDE) | (sigma > MAX_MAGNITUDE)):
+        bad = sigma[(sigma < MIN_MAGNITUDE) | (sigma > MAX_MAGNITUDE)][0]
+        raise ValueError(f"{name} must lie in [{MIN_MAGNITUDE:g}, {MAX_MAGNITUDE:g}] (rescale the map's units), "
+                         f"got {bad:g}")
 
 
 def check_covariances(cov, n: int, name: str):
@@ -65,20 +101,19 @@ def check_covariances(cov, n: int, name: str):
     """
     if cov is None:
         return None
-    try:
-        arr = np.asarray(cov, dtype=float)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be (n,) variances or (n, 2, 2) covariances") from None
+    arr = float_array(cov, f"{name} must be (n,) variances or (n, 2, 2) covariances of real numbers")
     if arr.shape == (n,):
         if not np.all(np.isfinite(arr)) or np.any(arr <= 0):
             raise ValueError(f"{name} must hold positive finite variances")
-        return arr[:, None, None] * np.eye(2)
-    if arr.shape != (n, 2, 2):
+        arr = arr[:, None, None] * np.eye(2)
+    elif arr.shape != (n, 2, 2):
         raise ValueError(f"{name} must have shape ({n},) or ({n}, 2, 2), one per landmark, got {arr.shape}")
-    sym = np.abs(arr[:, 0, 1] - arr[:, 1, 0]) <= 1e-9 * np.abs(arr).max(axis=(1, 2))
-    det = arr[:, 0, 0] * arr[:, 1, 1] - arr[:, 0, 1] * arr[:, 1, 0]
-    if not (np.all(np.isfinite(arr)) and np.all(sym) and np.all(arr[:, 0, 0] > 0) and np.all(det > 0)):
-        raise ValueError(f"{name} must hold symmetric positive-definite 2x2 covariances")
+    else:
+        sym = np.abs(arr[:, 0, 1] - arr[:, 1, 0]) <= 1e-9 * np.abs(arr).max(axis=(1, 2))
+        det = arr[:, 0, 0] * arr[:, 1, 1] - arr[:, 0, 1] * arr[:, 1, 0]
+        if not (np.all(np.isfinite(arr)) and np.all(sym) and np.all(arr[:, 0, 0] > 0) and np.all(det > 0)):
+            raise ValueError(f"{name} must hold symmetric positive-definite 2x2 covariances")
+    check_sigma_range(np.sqrt(np.concatenate([arr[:, 0, 0], arr[:, 1, 1]])), f"{name}'s standard deviations")
     return arr
 
 

@@ -41,6 +41,7 @@ import functools
 import numpy as np
 from scipy.spatial import ConvexHull, cKDTree
 
+from ._validation import check_points, check_sigma
 from .alignment import rotate
 
 #: Translation cells, in units of s.
@@ -106,10 +107,16 @@ def max_log_lr(P, Q, sigma: float, p_shared: float, density: float):
     theta : float
     t : (2,) ndarray
         Where: ``q ≈ R(θ) p + t``.
+
+    Raises
+    ------
+    ValueError
+        On an invalid map (P needs 3 distinct points not all on one line), ``sigma``, ``p_shared`` or ``density``.
     """
-    P, Q = np.asarray(P, float), np.asarray(Q, float)
-    if not (sigma > 0 and 0 < p_shared < 1 and density > 0):
-        raise ValueError("sigma and density must be > 0 and p_shared in (0, 1)")
+    P, Q = check_points(P, "P"), check_points(Q, "Q", min_points=1, geometry=False)
+    sigma = check_sigma(sigma)
+    if not (0 < p_shared < 1 and density > 0):
+        raise ValueError(f"p_shared must lie in (0, 1) and density be > 0, got {p_shared!r} and {density!r}")
     s = np.sqrt(2.0) * sigma
     c = bump_height(density, 1.0, s, p_shared)
     hull, tree_p = ConvexHull(P), cKDTree(P)

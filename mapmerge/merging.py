@@ -23,7 +23,8 @@ from typing import Callable
 import numpy as np
 
 from . import consensus, search
-from ._validation import check_covariances, check_geometry, check_points, check_rng, check_sigma
+from ._validation import (check_covariances, check_finite, check_geometry, check_points, check_rng, check_sigma,
+                          check_sigma_range, float_array)
 from .alignment import wrap_angle
 from .baselines import astroalign as astroalign_baseline
 from .baselines import groth as groth_baseline
@@ -171,15 +172,13 @@ def merge_batch(P, Q, sigma, tau=DEFAULT_TAU, method="consensus", objective="lr"
     P, Q = _check_batch(P, "P"), _check_batch(Q, "Q")
     if len(P) != len(Q):
         raise ValueError(f"P and Q must hold the same number of maps, got {len(P)} and {len(Q)}")
-    try:
-        sigma = np.asarray(sigma, dtype=float)
-    except (TypeError, ValueError):
-        raise ValueError(f"sigma must be a number or one per map pair, got {sigma!r}") from None
+    sigma = float_array(sigma, f"sigma must be a real number or one per map pair, got {sigma!r}")
     if sigma.shape not in ((), (len(P),)):
         raise ValueError(f"sigma must be a number or one per map pair, shape ({len(P)},), got shape {sigma.shape}")
     sigma = np.broadcast_to(sigma, (len(P),)).copy()
     if not np.all(np.isfinite(sigma) & (sigma > 0)):
         raise ValueError("sigma must be positive and finite for every map pair")
+    check_sigma_range(sigma)
     if (cov_p is None) != (cov_q is None):
         raise ValueError("cov_p and cov_q must be given together")
     cov_p, cov_q = (None if cov is None else _check_batch_covariances(cov, maps, name)
@@ -188,10 +187,7 @@ def merge_batch(P, Q, sigma, tau=DEFAULT_TAU, method="consensus", objective="lr"
 
 
 def _check_batch_covariances(cov, maps: np.ndarray, name: str) -> np.ndarray:
-    try:
-        cov = np.asarray(cov, dtype=float)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be an array of numbers") from None
+    cov = float_array(cov, f"{name} must be an array of real numbers")
     if cov.ndim not in (2, 4) or len(cov) != len(maps):
         raise ValueError(f"{name} must have shape (B, n) or (B, n, 2, 2) with B = {len(maps)} map pairs, "
                          f"got {cov.shape}")
@@ -223,10 +219,11 @@ def merge_maps(P, Q, sigma=None, tau=DEFAULT_TAU, method="consensus", objective=
     ----------
     P, Q : (n, 2) array_like
         Landmark estimates of map p and map q, each in its own frame; n >= 3,
-        finite, distinct, not all collinear.
+        finite, distinct, not all collinear, real coordinates of magnitude at
+        most 1e50 spanning at least 1e-50 (rescale other units).
     sigma : float, optional
         Per-coordinate standard deviation of one landmark's position, in map
-        units (metres for metric maps), > 0. May be left out when ``cov_p``
+        units (metres for metric maps), in [1e-50, 1e50]. May be left out when ``cov_p``
         and ``cov_q`` are given: then it is their ``pooled_sigma``, the σ
         of the stages that take one (the triangle statistic and its
         threshold). Measured on 100-landmark maps
@@ -295,15 +292,11 @@ def _merge(P, Q, sigma, tau, method, objective, cov_p, cov_q, rng) -> MergeBatch
 
 
 def _check_batch(maps, name: str) -> np.ndarray:
-    try:
-        arr = np.asarray(maps, dtype=float)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a (B, n, 2) array of numbers: B maps of one size n "
-                         "(merge_maps takes maps of any sizes, one pair at a time)") from None
+    arr = float_array(maps, f"{name} must be a (B, n, 2) array of real numbers: B maps of one size n "
+                            "(merge_maps takes maps of any sizes, one pair at a time)")
     if arr.ndim != 3 or arr.shape[2] != 2 or arr.shape[1] < 3:
         raise ValueError(f"{name} must have shape (B, n, 2) with n >= 3, got {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} contains NaN or inf; all coordinates must be finite")
+    check_finite(arr, name)
     check_geometry(arr, name, indexed=True)
     return arr
 

@@ -57,6 +57,9 @@ DEFAULT_ASPECT = 1.0
 LAYOUTS = ("strip", "interleaved")
 #: Interleaved layout: probability that an agent detects a landmark of the overlap.
 DEFAULT_P_DETECT = 0.9
+#: Largest |SNR| in dB: σ then lies within 10^±15 of the landmarks' spread, well inside what
+#: ``merge_maps`` accepts (far beyond any SNR at which matching changes).
+MAX_SNR_DB = 300.0
 
 
 @dataclass(frozen=True)
@@ -566,8 +569,8 @@ def check_scenario(n_landmarks, overlap, snr_db, aspect, layout="strip", p_detec
         raise ValueError(f"n_landmarks must be an integer >= 3, got {n_landmarks!r}")
     if not (np.isfinite(overlap) and 0.0 < overlap <= 1.0):
         raise ValueError(f"overlap must be in (0, 1], got {overlap!r}")
-    if not np.isfinite(snr_db):
-        raise ValueError(f"snr_db must be a finite number, got {snr_db!r}")
+    if not (np.isfinite(snr_db) and abs(snr_db) <= MAX_SNR_DB):
+        raise ValueError(f"snr_db must be a number of dB in [-{MAX_SNR_DB:g}, {MAX_SNR_DB:g}], got {snr_db!r}")
     if not (np.isfinite(aspect) and aspect > 0):
         raise ValueError(f"aspect must be a positive number, got {aspect!r}")
     if layout not in LAYOUTS:

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._validation import check_sigma
+from ._validation import check_finite, check_sigma, float_array
 from .triangles import TriangleBatch, ccw_order
 
 #: Triangle pairs scored per numpy call by ``pairwise_log_lr_blocks`` and ``min_cost``'s listed pairs: small enough
@@ -187,12 +187,8 @@ def pairwise_log_lr_blocks(tri_p: TriangleBatch, tri_q: TriangleBatch, vp: np.nd
 
 
 def _check_triangles(coords, name: str) -> np.ndarray:
-    try:
-        arr = np.asarray(coords, dtype=float)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a (T, 3, 2) array of numbers") from None
+    arr = float_array(coords, f"{name} must be a (T, 3, 2) array of real numbers")
     if arr.ndim != 3 or arr.shape[1:] != (3, 2):
         raise ValueError(f"{name} must have shape (T, 3, 2), got {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} contains NaN or inf; all coordinates must be finite")
+    check_finite(arr, name)
     return arr

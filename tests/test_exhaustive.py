@@ -24,12 +24,19 @@ def test_detector_finds_the_transform_and_separates_related_from_unrelated():
     assert value > null + 10
 
 
-def test_detector_rejects_bad_arguments():
+@pytest.mark.parametrize("kwargs, match", [
+    ({"sigma": 0.0}, "sigma must be a positive finite number"),
+    ({"p_shared": 1.0}, r"p_shared must lie in \(0, 1\) and density be > 0, got 1.0"),
+    ({"density": -1.0}, r"p_shared must lie in \(0, 1\) and density be > 0"),
+    ({"P": np.ones((5, 2))}, "P contains duplicate points"),
+    ({"Q": np.full((5, 2), np.nan)}, "Q contains NaN or inf"),
+    ({"Q": np.ones(5)}, r"Q must have shape \(n, 2\)"),
+])
+def test_detector_rejects_bad_arguments(kwargs, match):
     sc = mm.simulate.make_pair(20, 0.75, 10, rng=1)
-    for kwargs in ({"sigma": 0.0}, {"p_shared": 1.0}, {"density": -1.0}):
-        args = {"sigma": sc.sigma, "p_shared": 0.9, "density": 1.0, **kwargs}
-        with pytest.raises(ValueError, match="sigma and density"):
-            exhaustive.max_log_lr(sc.p, sc.q, **args)
+    args = {"P": sc.p, "Q": sc.q, "sigma": sc.sigma, "p_shared": 0.9, "density": 1.0, **kwargs}
+    with pytest.raises(ValueError, match=match):
+        exhaustive.max_log_lr(**args)
 
 
 @pytest.mark.parametrize("snr", [10.0, 25.0])

@@ -131,6 +131,17 @@ def test_unrelated_maps_give_no_match():
         ({"cov_p": np.tile([[1.0, 0.5], [0.0, 1.0]], (6, 1, 1)), "cov_q": np.full(6, 0.01)},
          "cov_p must hold symmetric positive-definite 2x2 covariances"),
         ({"cov_p": np.full(5, 0.01), "cov_q": np.full(6, 0.01)}, r"cov_p must have shape \(6,\) or \(6, 2, 2\)"),
+        ({"cov_p": np.full(6, 1e120), "cov_q": np.full(6, 0.01)}, r"cov_p's standard deviations must lie in \[1e-50"),
+        # Complex coordinates would lose their imaginary parts silently in a cast.
+        ({"P": np.ones((6, 2)) + 1j}, r"P must be an \(n, 2\) array of real numbers"),
+        ({"cov_q": np.full(6, 0.01) + 0j, "cov_p": np.full(6, 0.01)}, "cov_q must be .* of real numbers"),
+        # Out of the range where squared distances and qhull stay far from overflow and underflow.
+        ({"Q": np.array([[0, 0], [1, 0], [0, 1], [1, 1], [2, 3], [3, 1]]) * 1e60},
+         r"Q has coordinates of magnitude up to 3e\+60; at most 1e\+50 is allowed \(rescale the map's units\)"),
+        ({"P": np.array([[0, 0], [1, 0], [0, 1], [1, 1], [2, 3], [3, 1]]) * 1e-60},
+         "P points span less than 1e-50; rescale the map's units"),
+        ({"sigma": 1e300}, r"sigma must lie in \[1e-50, 1e\+50\] \(rescale the map's units\), got 1e\+300"),
+        ({"sigma": 1e-300}, r"sigma must lie in \[1e-50, 1e\+50\]"),
     ],
 )
 def test_merge_maps_rejects_bad_input(rng, kwargs, match):
@@ -235,14 +246,17 @@ def test_bent_driver_counts_second_matches():
 @pytest.mark.parametrize("kwargs, match", [
     ({"sigma": [0.1, 0.2]}, r"sigma must be a number or one per map pair, shape \(3,\), got shape \(2,\)"),
     ({"sigma": [[0.1] * 3]}, r"sigma must be a number or one per map pair"),
-    ({"sigma": "x"}, r"sigma must be a number or one per map pair, got 'x'"),
+    ({"sigma": "x"}, r"sigma must be a real number or one per map pair, got 'x'"),
+    ({"sigma": [0.1, 1e60, 0.1]}, r"sigma must lie in \[1e-50, 1e\+50\]"),
     ({"cov_p": np.ones((2, 10)), "cov_q": np.ones((3, 10))},
      r"cov_p must have shape \(B, n\) or \(B, n, 2, 2\) with B = 3"),
     ({"cov_p": np.ones((3, 10)), "cov_q": np.ones((3, 9))}, r"cov_q must have shape \(10,\) or \(10, 2, 2\)"),
-    ({"cov_p": "big", "cov_q": np.ones((3, 10))}, "cov_p must be an array of numbers"),
+    ({"cov_p": "big", "cov_q": np.ones((3, 10))}, "cov_p must be an array of real numbers"),
     ({"cov_p": np.ones((3, 10))}, "cov_p and cov_q must be given together"),
     ({"sigma": [0.1, 0.0, 0.1]}, "sigma must be positive and finite for every map pair"),
-    ({"P": "maps"}, r"P must be a \(B, n, 2\) array of numbers: B maps of one size n"),
+    ({"P": "maps"}, r"P must be a \(B, n, 2\) array of real numbers: B maps of one size n"),
+    ({"P": np.zeros((3, 10, 2)) + 1j}, r"P must be a \(B, n, 2\) array of real numbers"),
+    ({"Q": np.full((3, 10, 2), 1e51)}, r"Q has coordinates of magnitude up to 1e\+51; at most 1e\+50"),
     ({"P": np.zeros((3, 10, 3))}, r"P must have shape \(B, n, 2\) with n >= 3, got \(3, 10, 3\)"),
     ({"Q": np.full((3, 10, 2), np.nan)}, "Q contains NaN or inf"),
     ({"Q": mm.simulate.make_pairs(10, 0.75, 20, [0, 1]).q}, "P and Q must hold the same number of maps, got 3 and 2"),

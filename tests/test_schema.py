@@ -68,6 +68,7 @@ def test_fig3_preset_is_the_papers_grid():
         ("scenario.kind=lidar", "scenario.kind"),
         ("scenario.n_landmarks=4 scenario.overlap=0.5", "scenario.overlap"),
         ("scenario.snr_db=inf", "scenario.snr_db"),
+        ("scenario.snr_db=2000", r"scenario.snr_db.*must be a number of dB in \[-300, 300\]"),
         ("scenario.aspect=0", "scenario.aspect"),
         ("scenario.layout=grid", "scenario.layout"),
         ("scenario.p_detect=0", "scenario.p_detect"),

@@ -52,6 +52,7 @@ def test_reproducible_and_seed_sensitive():
         ({"overlap": 1.5}, "overlap"),
         ({"n_landmarks": 4, "overlap": 0.5}, "at least 3 common"),
         ({"snr_db": float("nan")}, "snr_db"),
+        ({"snr_db": -301.0}, r"snr_db must be a number of dB in \[-300, 300\], got -301.0"),
         ({"aspect": -1.0}, "aspect"),
         ({"rng": 1.5}, "rng must be None, a non-negative int"),
     ],
