@@ -47,8 +47,19 @@ def _parser() -> argparse.ArgumentParser:
     merge.add_argument("-o", "--output", required=True, help="combined map file to write (.csv or .tsv)")
     merge.add_argument("--plot", help="also draw both maps in A's frame to this image (PNG/PDF)")
     merge.add_argument("--json", action="store_true", help="print the summary as one JSON object")
-    merge.add_argument("--seed", type=int, default=None, help="seed of randomised methods (astroalign)")
+    merge.add_argument("--seed", type=_seed, default=None,
+                       help="seed of randomised methods (astroalign), an integer >= 0")
     return parser
+
+
+def _seed(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {text!r}")
+    return value
 
 
 def summary(res) -> dict:

@@ -79,6 +79,12 @@ def test_unrelated_maps_exit_1_and_write_nothing(tmp_path, capsys):
     ("x,y\n1,2\n3,4\n", "at least 3 landmarks"),
     ("x,y,sxx,sxy\n1,2,1,0\n3,4,1,0\n5,6,1,0\n", "needs all of sxx, sxy, syy"),
     ("x,y,sigma\n1,2,1\n3,4,0\n5,6,1\n", "sigma must be > 0"),
+    # Beyond the range merge_maps takes (squares would overflow): one line, no numpy warning.
+    ("x,y,sigma\n1,2,1\n3,4,1e300\n5,6,1\n",
+     "bad.csv: row 2: sigma must lie in [1e-50, 1e+50] (rescale the map's units)"),
+    ("x,y,sxx,sxy,syy\n1,2,1,0,1e120\n3,4,1,0,1\n5,6,1,0,1\n",
+     "bad.csv: row 1: sxx and syy must lie in [1e-100, 1e+100]"),
+    ("x,y\n1e60,0\n1,0\n0,1\n", "bad.csv: has coordinates of magnitude up to 1e+60; at most 1e+50 is allowed"),
     # Errors of the maps' geometry name the file, not the library's argument.
     ("x,y\n0,0\n1,1\n2,2\n", "bad.csv: points are all collinear"),
     ("x,y\n0,0\n1,0\n0,1\n1,0\n", "bad.csv: contains duplicate points"),
@@ -96,6 +102,15 @@ def test_bad_files_give_one_line_and_exit_2(tmp_path, capsys, content, message):
     assert main(["merge", str(a), str(bad), "--sigma", "0.02", "-o", str(tmp_path / "m.csv")]) == 2
     err = capsys.readouterr().err.strip()
     assert message in err and "\n" not in err and not (tmp_path / "m.csv").exists()
+
+
+@pytest.mark.parametrize("seed", ["-1", "x"])
+def test_a_bad_seed_is_refused_by_the_parser(tmp_path, capsys, seed):
+    a, b, _ = _maps(tmp_path)
+    with pytest.raises(SystemExit) as exit_:
+        main(["merge", str(a), str(b), "--sigma", "0.02", "-o", str(tmp_path / "m.csv"), "--seed", seed])
+    assert exit_.value.code == 2
+    assert f"argument --seed: must be an integer >= 0, got '{seed}'" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("extra, message", [
