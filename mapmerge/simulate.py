@@ -60,6 +60,13 @@ DEFAULT_P_DETECT = 0.9
 #: Largest |SNR| in dB: σ then lies within 10^±15 of the landmarks' spread, well inside what
 #: ``merge_maps`` accepts (far beyond any SNR at which matching changes).
 MAX_SNR_DB = 300.0
+#: Largest map drawn, true plus spurious landmarks (``n_landmarks · (1 + clutter)``): the methods
+#: take 0.3-1 GB at 10⁵ landmarks per map, so several GB here.
+MAX_MAP_LANDMARKS = 10**6
+#: Map rectangles' width / height, from 1 / ``MAX_ASPECT`` to ``MAX_ASPECT`` (beyond, a map is a line).
+MAX_ASPECT = 1000.0
+#: Largest ``anisotropy`` (cross-range noise up to 1 + this times the range noise).
+MAX_ANISOTROPY = 1000.0
 
 
 @dataclass(frozen=True)
@@ -571,16 +578,19 @@ def check_scenario(n_landmarks, overlap, snr_db, aspect, layout="strip", p_detec
         raise ValueError(f"overlap must be in (0, 1], got {overlap!r}")
     if not (np.isfinite(snr_db) and abs(snr_db) <= MAX_SNR_DB):
         raise ValueError(f"snr_db must be a number of dB in [-{MAX_SNR_DB:g}, {MAX_SNR_DB:g}], got {snr_db!r}")
-    if not (np.isfinite(aspect) and aspect > 0):
-        raise ValueError(f"aspect must be a positive number, got {aspect!r}")
+    if not (np.isfinite(aspect) and 1 / MAX_ASPECT <= aspect <= MAX_ASPECT):
+        raise ValueError(f"aspect must be in [{1 / MAX_ASPECT:g}, {MAX_ASPECT:g}], got {aspect!r}")
     if layout not in LAYOUTS:
         raise ValueError(f"layout must be one of {LAYOUTS}, got {layout!r}")
     if not (np.isfinite(p_detect) and 0.0 < p_detect <= 1.0):
         raise ValueError(f"p_detect must be in (0, 1], got {p_detect!r}")
     if not (np.isfinite(clutter) and clutter >= 0):
         raise ValueError(f"clutter must be a number >= 0 (spurious landmarks per true landmark), got {clutter!r}")
-    if not (np.isfinite(anisotropy) and anisotropy >= 0):
-        raise ValueError(f"anisotropy must be a number >= 0, got {anisotropy!r}")
+    if not (np.isfinite(anisotropy) and 0 <= anisotropy <= MAX_ANISOTROPY):
+        raise ValueError(f"anisotropy must be in [0, {MAX_ANISOTROPY:g}], got {anisotropy!r}")
+    if n_landmarks * (1 + clutter) > MAX_MAP_LANDMARKS:
+        raise ValueError(f"n_landmarks * (1 + clutter) must be at most {MAX_MAP_LANDMARKS:,} landmarks per map, "
+                         f"got {n_landmarks} * (1 + {clutter})")
     n = int(n_landmarks)
     c = int(np.floor(overlap * n + 0.5))
     if c < 3:

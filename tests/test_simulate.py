@@ -54,6 +54,9 @@ def test_reproducible_and_seed_sensitive():
         ({"snr_db": float("nan")}, "snr_db"),
         ({"snr_db": -301.0}, r"snr_db must be a number of dB in \[-300, 300\], got -301.0"),
         ({"aspect": -1.0}, "aspect"),
+        ({"aspect": 1e-4}, r"aspect must be in \[0.001, 1000\], got 0.0001"),
+        ({"anisotropy": 1e4}, r"anisotropy must be in \[0, 1000\]"),
+        ({"n_landmarks": 10**6, "clutter": 0.5}, r"n_landmarks \* \(1 \+ clutter\) must be at most 1,000,000"),
         ({"rng": 1.5}, "rng must be None, a non-negative int"),
     ],
 )
