@@ -11,7 +11,6 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import importlib.util
-import math
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -146,7 +145,7 @@ def validate(cfg) -> None:
     from mapmerge.datasets import SOURCES
     from mapmerge.matching import OBJECTIVES, resolve_log_tau
     from mapmerge.merging import METHODS
-    from mapmerge.simulate import LAYOUTS, MAX_ANISOTROPY, MAX_ASPECT, MAX_MAP_LANDMARKS, MAX_SNR_DB
+    from mapmerge.simulate import ScenarioError, check_scenario
 
     s, m, mc = cfg.scenario, cfg.matcher, cfg.mc
     if s.kind not in KINDS:
@@ -160,28 +159,10 @@ def validate(cfg) -> None:
             _fail("scenario.source", s.source, "needs GTSAM: pip install -e '.[slam]'")
         if mc.n_trials != 1:
             _fail("mc.n_trials", mc.n_trials, "must be 1 for a real data set (its maps are fixed)")
-    if s.n_landmarks < 3:
-        _fail("scenario.n_landmarks", s.n_landmarks, "must be an integer >= 3")
-    if not (0.0 < s.overlap <= 1.0):
-        _fail("scenario.overlap", s.overlap, "must be in (0, 1]")
-    if math.floor(s.overlap * s.n_landmarks + 0.5) < 3:
-        _fail("scenario.overlap", s.overlap, "overlap * n_landmarks must round to >= 3 common landmarks")
-    if not (math.isfinite(s.snr_db) and abs(s.snr_db) <= MAX_SNR_DB):
-        _fail("scenario.snr_db", s.snr_db, f"must be a number of dB in [-{MAX_SNR_DB:g}, {MAX_SNR_DB:g}]")
-    if not (math.isfinite(s.aspect) and 1 / MAX_ASPECT <= s.aspect <= MAX_ASPECT):
-        _fail("scenario.aspect", s.aspect, f"must be in [{1 / MAX_ASPECT:g}, {MAX_ASPECT:g}]")
-    if s.layout not in LAYOUTS:
-        _fail("scenario.layout", s.layout, f"must be one of {list(LAYOUTS)}")
-    if not (0.0 < s.p_detect <= 1.0):
-        _fail("scenario.p_detect", s.p_detect, "must be a probability in (0, 1]")
-    if not (math.isfinite(s.clutter) and s.clutter >= 0):
-        _fail("scenario.clutter", s.clutter, "must be >= 0 (spurious landmarks per true landmark)")
-    if not (math.isfinite(s.anisotropy) and 0 <= s.anisotropy <= MAX_ANISOTROPY):
-        _fail("scenario.anisotropy", s.anisotropy, f"must be in [0, {MAX_ANISOTROPY:g}] (0 is isotropic noise)")
-    if s.n_landmarks * (1 + s.clutter) > MAX_MAP_LANDMARKS:
-        _fail("scenario.n_landmarks", s.n_landmarks,
-              f"with scenario.clutter={s.clutter}, maps of n_landmarks * (1 + clutter) landmarks must hold at most "
-              f"{MAX_MAP_LANDMARKS:,}")
+    try:
+        check_scenario(s.n_landmarks, s.overlap, s.snr_db, s.aspect, s.layout, s.p_detect, s.clutter, s.anisotropy)
+    except ScenarioError as e:
+        _fail(f"scenario.{e.argument}", e.value, e.rule)
     if m.method not in METHODS:
         _fail("matcher.method", m.method, f"must be one of {list(METHODS)}")
     if m.method == "astroalign" and importlib.util.find_spec("astroalign") is None:

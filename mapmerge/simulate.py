@@ -569,32 +569,51 @@ def _world(blocks, height: float, u: np.ndarray) -> np.ndarray:
     return np.stack([values[:, col_x], values[:, col_y]], axis=2)
 
 
+class ScenarioError(ValueError):
+    """A scenario argument out of its range: ``argument`` names it, ``value`` is what was given and
+    ``rule`` says what is allowed (so that a config validator can name its own key)."""
+
+    def __init__(self, argument: str, value, rule: str):
+        super().__init__(f"{argument} {rule}, got {value!r}")
+        self.argument, self.value, self.rule = argument, value, rule
+
+
+def _real(value) -> bool:
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool) and bool(
+        np.isfinite(value))
+
+
 def check_scenario(n_landmarks, overlap, snr_db, aspect, layout="strip", p_detect=DEFAULT_P_DETECT, clutter=0.0,
                    anisotropy=0.0) -> tuple[int, int]:
-    """Validate scenario arguments; return ``(n, c)``: true and common landmarks per map."""
-    if isinstance(n_landmarks, bool) or int(n_landmarks) != n_landmarks or n_landmarks < 3:
-        raise ValueError(f"n_landmarks must be an integer >= 3, got {n_landmarks!r}")
-    if not (np.isfinite(overlap) and 0.0 < overlap <= 1.0):
-        raise ValueError(f"overlap must be in (0, 1], got {overlap!r}")
-    if not (np.isfinite(snr_db) and abs(snr_db) <= MAX_SNR_DB):
-        raise ValueError(f"snr_db must be a number of dB in [-{MAX_SNR_DB:g}, {MAX_SNR_DB:g}], got {snr_db!r}")
-    if not (np.isfinite(aspect) and 1 / MAX_ASPECT <= aspect <= MAX_ASPECT):
-        raise ValueError(f"aspect must be in [{1 / MAX_ASPECT:g}, {MAX_ASPECT:g}], got {aspect!r}")
+    """Validate scenario arguments; return ``(n, c)``: true and common landmarks per map.
+
+    Raises
+    ------
+    ScenarioError
+        Naming the first argument out of its range.
+    """
+    if not (_real(n_landmarks) and int(n_landmarks) == n_landmarks and n_landmarks >= 3):
+        raise ScenarioError("n_landmarks", n_landmarks, "must be an integer >= 3")
+    if not (_real(overlap) and 0.0 < overlap <= 1.0):
+        raise ScenarioError("overlap", overlap, "must be in (0, 1]")
+    if not (_real(snr_db) and abs(snr_db) <= MAX_SNR_DB):
+        raise ScenarioError("snr_db", snr_db, f"must be a number of dB in [-{MAX_SNR_DB:g}, {MAX_SNR_DB:g}]")
+    if not (_real(aspect) and 1 / MAX_ASPECT <= aspect <= MAX_ASPECT):
+        raise ScenarioError("aspect", aspect, f"must be in [{1 / MAX_ASPECT:g}, {MAX_ASPECT:g}]")
     if layout not in LAYOUTS:
-        raise ValueError(f"layout must be one of {LAYOUTS}, got {layout!r}")
-    if not (np.isfinite(p_detect) and 0.0 < p_detect <= 1.0):
-        raise ValueError(f"p_detect must be in (0, 1], got {p_detect!r}")
-    if not (np.isfinite(clutter) and clutter >= 0):
-        raise ValueError(f"clutter must be a number >= 0 (spurious landmarks per true landmark), got {clutter!r}")
-    if not (np.isfinite(anisotropy) and 0 <= anisotropy <= MAX_ANISOTROPY):
-        raise ValueError(f"anisotropy must be in [0, {MAX_ANISOTROPY:g}], got {anisotropy!r}")
-    if n_landmarks * (1 + clutter) > MAX_MAP_LANDMARKS:
-        raise ValueError(f"n_landmarks * (1 + clutter) must be at most {MAX_MAP_LANDMARKS:,} landmarks per map, "
-                         f"got {n_landmarks} * (1 + {clutter})")
+        raise ScenarioError("layout", layout, f"must be one of {list(LAYOUTS)}")
+    if not (_real(p_detect) and 0.0 < p_detect <= 1.0):
+        raise ScenarioError("p_detect", p_detect, "must be a probability in (0, 1]")
+    if not (_real(clutter) and clutter >= 0):
+        raise ScenarioError("clutter", clutter, "must be >= 0 (spurious landmarks per true landmark)")
+    if not (_real(anisotropy) and 0 <= anisotropy <= MAX_ANISOTROPY):
+        raise ScenarioError("anisotropy", anisotropy, f"must be in [0, {MAX_ANISOTROPY:g}] (0 is isotropic noise)")
     n = int(n_landmarks)
+    if n * (1 + clutter) > MAX_MAP_LANDMARKS:
+        raise ScenarioError("n_landmarks", n_landmarks, f"must keep n_landmarks * (1 + clutter) at most "
+                                                        f"{MAX_MAP_LANDMARKS:,} landmarks per map (clutter {clutter})")
     c = int(np.floor(overlap * n + 0.5))
     if c < 3:
-        raise ValueError(
-            f"overlap * n_landmarks must round to at least 3 common landmarks, got {overlap}*{n}"
-        )
+        raise ScenarioError("overlap", overlap, f"must make overlap * n_landmarks round to at least 3 common "
+                                                f"landmarks (n_landmarks {n})")
     return n, c

@@ -56,7 +56,9 @@ def test_reproducible_and_seed_sensitive():
         ({"aspect": -1.0}, "aspect"),
         ({"aspect": 1e-4}, r"aspect must be in \[0.001, 1000\], got 0.0001"),
         ({"anisotropy": 1e4}, r"anisotropy must be in \[0, 1000\]"),
-        ({"n_landmarks": 10**6, "clutter": 0.5}, r"n_landmarks \* \(1 \+ clutter\) must be at most 1,000,000"),
+        ({"n_landmarks": 10**6, "clutter": 0.5}, r"must keep n_landmarks \* \(1 \+ clutter\) at most 1,000,000"),
+        ({"n_landmarks": None}, "n_landmarks must be an integer >= 3, got None"),
+        ({"overlap": "half"}, r"overlap must be in \(0, 1\], got 'half'"),
         ({"rng": 1.5}, "rng must be None, a non-negative int"),
     ],
 )
