@@ -342,13 +342,15 @@ def correspondences(vertices_p, vertices_q, log_lr):
     return uniq[keep].astype(np.intp), int(keep.size - np.count_nonzero(keep))
 
 
-def resolve_correspondences(vertices_p, vertices_q, log_lr=None):
+def resolve_correspondences(vertices_p, vertices_q, log_lr=None, min_votes=1):
     """Candidate correspondences of declared pairs and which of them survive.
 
     The rule of ``correspondences``, returned in full so that callers
     holding many independent map pairs (landmark indices offset per pair)
     can count conflicts per pair. Without ``log_lr``, votes alone rank
-    (then the lower indices).
+    (then the lower indices). Candidates with fewer than ``min_votes`` votes
+    take no part: they neither survive nor block another (as if ranked after
+    every other, whose fate they cannot change).
 
     Returns
     -------
@@ -391,19 +393,24 @@ def resolve_correspondences(vertices_p, vertices_q, log_lr=None):
     p, d = np.divmod(present, width)
     uniq = np.stack([p, p + d + lo], axis=1)  # sorted by (p, q), as the keys
     # Only candidates sharing a landmark with another can lose; rank those.
-    contested = np.flatnonzero((np.bincount(uniq[:, 0])[uniq[:, 0]] > 1) | (np.bincount(uniq[:, 1])[uniq[:, 1]] > 1))
-    keep = np.ones(len(uniq), dtype=bool)
+    if min_votes > 1:
+        keep = all_votes >= min_votes
+        up, uq = uniq[keep, 0], uniq[keep, 1]
+        contested = np.flatnonzero(keep)[(np.bincount(up)[up] > 1) | (np.bincount(uq)[uq] > 1)]
+    else:
+        keep = np.ones(len(uniq), dtype=bool)
+        contested = np.flatnonzero((np.bincount(uniq[:, 0])[uniq[:, 0]] > 1)
+                                   | (np.bincount(uniq[:, 1])[uniq[:, 1]] > 1))
     if contested.size == 0:
         return uniq, keep, all_votes
-    votes = all_votes[contested]
     cp, cq = uniq[contested, 0], uniq[contested, 1]
-    # Contested pairs are in (p, q) order, which breaks the remaining ties. Ranks are only compared,
-    # so by votes alone a key that orders as (votes down, position) serves without a sort.
-    if score is None:
-        rank = (votes.max() - votes) * contested.size + np.arange(contested.size)
-    else:
-        rank = np.empty(contested.size, dtype=np.int64)
-        rank[np.lexsort((-best[contested], -votes))] = np.arange(contested.size)
+    # Rank: votes down, then the best score down, then position ((p, q) order). By votes alone a key
+    # ordering as (votes down, position) serves without a sort; with scores, the score is compared
+    # among each landmark's leaders by votes (``_leaders``) rather than sorted: many candidates (Groth's
+    # hundreds per map pair) and few rounds.
+    votes = all_votes[contested]
+    rank = (votes.max() - votes) * contested.size + np.arange(contested.size)
+    best = None if score is None else best[contested]
     # Greedy in rank order, in rounds: a candidate ranked first among the
     # live ones sharing its p and its q is exactly one the sequential greedy
     # keeps; keeping it kills its rivals. Conflicts are rare, so few rounds.
@@ -412,7 +419,8 @@ def resolve_correspondences(vertices_p, vertices_q, log_lr=None):
     live = np.arange(contested.size)  # shrinks each round: most candidates die in the first ones
     while live.size:
         lp, lq, lr = cp[live], cq[live], rank[live]
-        first = (lr == _first_rank(lp, lr)) & (lr == _first_rank(lq, lr))
+        lb = None if best is None else best[live]
+        first = _leaders(lp, lr, votes[live], lb) & _leaders(lq, lr, votes[live], lb)
         won[live[first]] = True
         taken_p[lp[first]] = taken_q[lq[first]] = True
         live = live[~taken_p[lp] & ~taken_q[lq]]
@@ -426,11 +434,21 @@ _NO_RANK = np.iinfo(np.int64).max
 KEY_TABLE_FACTOR = 8
 
 
-def _first_rank(landmark: np.ndarray, rank: np.ndarray) -> np.ndarray:
-    """For each candidate, the best rank among the candidates of its landmark."""
-    best = np.full(int(landmark.max()) + 1, _NO_RANK)
-    np.minimum.at(best, landmark, rank)
-    return best[landmark]
+def _leaders(landmark: np.ndarray, rank: np.ndarray, votes: np.ndarray, score: np.ndarray | None) -> np.ndarray:
+    """Whether each candidate comes first among the candidates of its landmark: by ``rank`` (votes down,
+    then position) or, with ``score``, the most votes, then the best score, then position."""
+    top = np.full(int(landmark.max()) + 1, _NO_RANK)
+    if score is None:
+        np.minimum.at(top, landmark, rank)
+        return rank == top[landmark]
+    most = np.zeros(len(top), dtype=votes.dtype)
+    np.maximum.at(most, landmark, votes)
+    lead = votes == most[landmark]
+    high = np.full(len(top), -np.inf)
+    np.maximum.at(high, landmark[lead], score[lead])
+    lead &= score == high[landmark]
+    np.minimum.at(top, landmark[lead], rank[lead])
+    return lead & (rank == top[landmark])
 
 
 #: Above this many triangle pairs (Tp·Tq, about 250 landmarks per map) the

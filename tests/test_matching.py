@@ -19,13 +19,15 @@ def test_threshold_forms():
             mm.resolve_log_tau(bad)
 
 
-def _sequential_greedy(vertices_p, vertices_q, log_lr):
-    """The documented rule, one candidate at a time (most votes, best score, lowest indices)."""
+def _sequential_greedy(vertices_p, vertices_q, log_lr, min_votes=1):
+    """The documented rule, one candidate at a time (most votes, best score, lowest indices), among the
+    candidates with at least ``min_votes`` votes."""
     cand = {}
     for tp, tq, s in zip(vertices_p, vertices_q, log_lr):
         for i, j in zip(tp, tq):
             votes, best = cand.get((i, j), (0, -np.inf))
             cand[(i, j)] = (votes + 1, max(best, s))
+    cand = {k: v for k, v in cand.items() if v[0] >= min_votes}
     used_p, used_q, keep = set(), set(), []
     for (i, j), _ in sorted(cand.items(), key=lambda kv: (-kv[1][0], -kv[1][1], kv[0][0], kv[0][1])):
         if i not in used_p and j not in used_q:
@@ -33,28 +35,30 @@ def _sequential_greedy(vertices_p, vertices_q, log_lr):
     return sorted(keep), len(cand) - len(keep)
 
 
+@pytest.mark.parametrize("min_votes", [1, 2])
 @pytest.mark.parametrize("scored", [True, False])
 @pytest.mark.parametrize("key_table_factor", [0, 10**9], ids=["sorted-keys", "key-table"])
-def test_correspondences_equal_the_sequential_greedy(monkeypatch, key_table_factor, scored):
+def test_correspondences_equal_the_sequential_greedy(monkeypatch, key_table_factor, scored, min_votes):
     """Both ways of grouping candidates (a sort, a table of keys) give the rule's answer, with
-    scores and by votes alone; the landmark indices carry offsets as a batch of map pairs has."""
+    scores and by votes alone, and among the candidates with two votes or more (Groth's); the landmark
+    indices carry offsets as a batch of map pairs has."""
     monkeypatch.setattr(mm.matching, "KEY_TABLE_FACTOR", key_table_factor)
     rng = np.random.default_rng(7)
     for _ in range(1500):
-        m, n = int(rng.integers(1, 12)), int(rng.integers(3, 25))
+        m, n = int(rng.integers(1, 12)), int(rng.integers(3, 25) if min_votes == 1 else rng.integers(3, 8))
         vp = np.array([rng.choice(n, 3, replace=False) for _ in range(m)]) + 40 * int(rng.integers(0, 3))
         vq = np.array([rng.choice(n, 3, replace=False) for _ in range(m)]) + 40 * int(rng.integers(0, 3))
         scores = np.round(rng.normal(size=m), 1) if scored else np.zeros(m)  # ties in score happen
-        uniq, keep, votes = mm.matching.resolve_correspondences(vp, vq, scores if scored else None)
-        expected, dropped = _sequential_greedy(vp, vq, scores)
+        uniq, keep, votes = mm.matching.resolve_correspondences(vp, vq, scores if scored else None, min_votes)
+        expected, dropped = _sequential_greedy(vp, vq, scores, min_votes)
         assert [tuple(p) for p in uniq[keep].tolist()] == expected
-        assert len(keep) - np.count_nonzero(keep) == dropped
+        assert np.count_nonzero((votes >= min_votes) & ~keep) == dropped
         counted = {}
         for i, j in zip(vp.ravel().tolist(), vq.ravel().tolist()):
             counted[(i, j)] = counted.get((i, j), 0) + 1
         assert dict(zip(map(tuple, uniq.tolist()), votes.tolist())) == counted
         assert list(map(tuple, uniq.tolist())) == sorted(counted)
-        if scored:
+        if scored and min_votes == 1:
             assert correspondences(vp, vq, scores)[1] == dropped
 
 

@@ -275,3 +275,16 @@ def test_merge_batch_takes_per_landmark_variances_as_merge_maps_does():
     for b in range(2):
         one = mm.merge_maps(batch.p[b], batch.q[b], batch.sigma[b], cov_p=var[b], cov_q=var[b])
         np.testing.assert_array_equal(res.result(b).merged, one.merged)
+
+
+@pytest.mark.parametrize("method", ["paper", "cyclic", "consensus", "search", "groth"])
+def test_the_order_of_the_landmarks_does_not_change_the_match(method):
+    """Rows permuted in both maps: the same landmark pairs (Groth's equal votes once went by row order)."""
+    rng = np.random.default_rng(11)
+    for seed in range(6):
+        sc = mm.simulate.make_pair(40, 0.75, 25, rng=seed)
+        pp, pq = rng.permutation(len(sc.p)), rng.permutation(len(sc.q))
+        a = mm.merge_maps(sc.p, sc.q, sc.sigma, method=method)
+        b = mm.merge_maps(sc.p[pp], sc.q[pq], sc.sigma, method=method)
+        assert a.matched == b.matched
+        assert sorted(map(tuple, a.pairs.tolist())) == sorted((int(pp[i]), int(pq[j])) for i, j in b.pairs.tolist())

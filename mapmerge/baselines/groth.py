@@ -6,7 +6,9 @@ Each triangle gets the rotation/translation/scale invariants R = r3/r2
 Groth's tolerances for a vertex position error ε; pairs whose invariants
 agree within the tolerances and whose orientation agrees are matched, every
 match votes for its three vertex correspondences, the correspondences with
-at least two votes are accepted one-to-one in decreasing vote order, and the
+at least two votes are accepted one-to-one in decreasing vote order (equal
+votes: the one whose best voter's invariants agree most closely first, so
+that the landmarks' order in the maps does not matter), and the
 transform is fitted with the n-point closed form, dropping the worst
 correspondence outside a χ²₂ gate and refitting until none is left outside
 (Groth's iterative rejection). Every step runs on a whole batch of map
@@ -105,7 +107,10 @@ def groth_pairs(P, Q, sigma, tri_p: TriangleBatch, tri_q: TriangleBatch):
     gp, gq = tri_p.offsets[tri_trial] + i, tri_q.offsets[tri_trial] + j
     vp, vq = tri_p.vertices[gp], tri_q.vertices[gq]
     cost = min_cost(coords_p, coords_q, pairs=(gp, gq))[0]  # the GLRT's, in Groth order
-    pair_trial, pairs, n_conflicts = _vote(tri_trial, vp, vq, max(P.shape[1], Q.shape[1]), B)
+    # How closely each pair's invariants agree, in units of their tolerances (larger is closer): it breaks
+    # ties in votes, which the landmarks' order would otherwise break.
+    agreement = -((Rp[gp] - Rq[gq]) ** 2 / (tRp[gp] + tRq[gq]) + (Cp[gp] - Cq[gq]) ** 2 / (tCp[gp] + tCq[gq]))
+    pair_trial, pairs, n_conflicts = _vote(tri_trial, vp, vq, agreement, max(P.shape[1], Q.shape[1]), B)
     keep = reject_outliers_batch(P, Q, pair_trial, pairs, sigma, GROTH_GATE_P)
     pair_trial, pairs = pair_trial[keep], pairs[keep]
     to_q = np.full(B * P.shape[1], -1)
@@ -121,14 +126,15 @@ def _padded_rows(tri: TriangleBatch, maps: np.ndarray, width: int) -> np.ndarray
     return np.where(slot < tri.count[maps][:, None], tri.offsets[maps][:, None] + slot, -1)
 
 
-def _vote(tri_trial, vp, vq, n, B):
-    """One-to-one correspondences by decreasing votes, at least two votes each, per map pair
-    (landmark indices offset by ``n`` per map pair, so that one call serves them all)."""
+def _vote(tri_trial, vp, vq, agreement, n, B):
+    """One-to-one correspondences by decreasing votes, at least two votes each, per map pair, equal votes
+    ranked by the closest invariant agreement among their voters (landmark indices offset by ``n`` per map
+    pair, so that one call serves them all)."""
     off = (tri_trial * n)[:, None]
-    uniq, keep, votes = resolve_correspondences(off + vp, off + vq)
-    winners = np.flatnonzero(keep & (votes >= 2))
+    uniq, keep, votes = resolve_correspondences(off + vp, off + vq, agreement, min_votes=2)
+    winners = np.flatnonzero(keep)
     return ((uniq[winners, 0] // n).astype(np.intp), (uniq[winners] % n).astype(np.intp),
-            np.bincount(uniq[~keep, 0] // n, minlength=B))
+            np.bincount(uniq[~keep & (votes >= 2), 0] // n, minlength=B))
 
 
 def merge(P, Q, sigma, tri_p: TriangleBatch, tri_q: TriangleBatch, rng=None) -> MergeBatch:
