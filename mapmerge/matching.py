@@ -393,14 +393,9 @@ def resolve_correspondences(vertices_p, vertices_q, log_lr=None, min_votes=1):
     p, d = np.divmod(present, width)
     uniq = np.stack([p, p + d + lo], axis=1)  # sorted by (p, q), as the keys
     # Only candidates sharing a landmark with another can lose; rank those.
-    if min_votes > 1:
-        keep = all_votes >= min_votes
-        up, uq = uniq[keep, 0], uniq[keep, 1]
-        contested = np.flatnonzero(keep)[(np.bincount(up)[up] > 1) | (np.bincount(uq)[uq] > 1)]
-    else:
-        keep = np.ones(len(uniq), dtype=bool)
-        contested = np.flatnonzero((np.bincount(uniq[:, 0])[uniq[:, 0]] > 1)
-                                   | (np.bincount(uniq[:, 1])[uniq[:, 1]] > 1))
+    keep = all_votes >= min_votes
+    up, uq = uniq[keep, 0], uniq[keep, 1]
+    contested = np.flatnonzero(keep)[(np.bincount(up)[up] > 1) | (np.bincount(uq)[uq] > 1)]
     if contested.size == 0:
         return uniq, keep, all_votes
     cp, cq = uniq[contested, 0], uniq[contested, 1]
