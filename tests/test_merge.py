@@ -278,13 +278,18 @@ def test_merge_batch_takes_per_landmark_variances_as_merge_maps_does():
 
 
 @pytest.mark.parametrize("method", ["paper", "cyclic", "consensus", "search", "groth"])
-def test_the_order_of_the_landmarks_does_not_change_the_match(method):
-    """Rows permuted in both maps: the same landmark pairs (Groth's equal votes once went by row order)."""
+def test_neither_the_order_of_the_landmarks_nor_q_s_frame_changes_the_match(method):
+    """Rows permuted in both maps, or q moved rigidly: the same landmark pairs (Groth's equal votes once
+    went by row order)."""
     rng = np.random.default_rng(11)
     for seed in range(6):
         sc = mm.simulate.make_pair(40, 0.75, 25, rng=seed)
         pp, pq = rng.permutation(len(sc.p)), rng.permutation(len(sc.q))
         a = mm.merge_maps(sc.p, sc.q, sc.sigma, method=method)
+        pairs = sorted(map(tuple, a.pairs.tolist()))
         b = mm.merge_maps(sc.p[pp], sc.q[pq], sc.sigma, method=method)
         assert a.matched == b.matched
-        assert sorted(map(tuple, a.pairs.tolist())) == sorted((int(pp[i]), int(pq[j])) for i, j in b.pairs.tolist())
+        assert pairs == sorted((int(pp[i]), int(pq[j])) for i, j in b.pairs.tolist())
+        moved = sc.q @ mm.rotation(rng.uniform(-np.pi, np.pi)).T + rng.uniform(-50, 50, 2)
+        c = mm.merge_maps(sc.p, moved, sc.sigma, method=method)
+        assert c.matched == a.matched and sorted(map(tuple, c.pairs.tolist())) == pairs
