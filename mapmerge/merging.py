@@ -294,8 +294,8 @@ def _merge(P, Q, sigma, tau, method, objective, cov_p, cov_q, rng) -> MergeBatch
 def _check_batch(maps, name: str) -> np.ndarray:
     arr = float_array(maps, f"{name} must be a (B, n, 2) array of real numbers: B maps of one size n "
                             "(merge_maps takes maps of any sizes, one pair at a time)")
-    if arr.ndim != 3 or arr.shape[2] != 2 or arr.shape[1] < 3:
-        raise ValueError(f"{name} must have shape (B, n, 2) with n >= 3, got {arr.shape}")
+    if arr.ndim != 3 or arr.shape[2] != 2 or arr.shape[1] < 3 or arr.shape[0] < 1:
+        raise ValueError(f"{name} must have shape (B, n, 2) with B >= 1 and n >= 3, got {arr.shape}")
     check_finite(arr, name)
     check_geometry(arr, name, indexed=True)
     return arr

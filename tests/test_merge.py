@@ -257,7 +257,9 @@ def test_bent_driver_counts_second_matches():
     ({"P": "maps"}, r"P must be a \(B, n, 2\) array of real numbers: B maps of one size n"),
     ({"P": np.zeros((3, 10, 2)) + 1j}, r"P must be a \(B, n, 2\) array of real numbers"),
     ({"Q": np.full((3, 10, 2), 1e51)}, r"Q has coordinates of magnitude up to 1e\+51; at most 1e\+50"),
-    ({"P": np.zeros((3, 10, 3))}, r"P must have shape \(B, n, 2\) with n >= 3, got \(3, 10, 3\)"),
+    ({"P": np.zeros((3, 10, 3))}, r"P must have shape \(B, n, 2\) with B >= 1 and n >= 3, got \(3, 10, 3\)"),
+    ({"P": np.zeros((0, 10, 2)), "Q": np.zeros((0, 10, 2)), "sigma": 0.1},
+     r"P must have shape \(B, n, 2\) with B >= 1 and n >= 3, got \(0, 10, 2\)"),
     ({"Q": np.full((3, 10, 2), np.nan)}, "Q contains NaN or inf"),
     ({"Q": mm.simulate.make_pairs(10, 0.75, 20, [0, 1]).q}, "P and Q must hold the same number of maps, got 3 and 2"),
 ])
