@@ -187,12 +187,21 @@ def roc_curve(y_true, y_score):
 
 
 def auc(fpr, tpr) -> float:
-    """Area under a curve by the trapezoid rule (ROC: ``auc(fpr, tpr)``); NaN with under two points."""
+    """Area under a curve by the trapezoid rule (ROC: ``auc(fpr, tpr)``); NaN with under two points.
+
+    Raises
+    ------
+    ValueError
+        If the arrays are not 1-D of one length, or ``fpr`` decreases somewhere (a curve out of
+        order has no area; ``roc_curve`` returns its points in order).
+    """
     fpr, tpr = np.asarray(fpr, dtype=float), np.asarray(tpr, dtype=float)
     if fpr.ndim != 1 or fpr.shape != tpr.shape:
         raise ValueError(f"fpr and tpr must be 1-D and of the same length, got shapes {fpr.shape} and {tpr.shape}")
     if fpr.size < 2 or np.any(np.isnan(fpr)) or np.any(np.isnan(tpr)):
         return float("nan")
+    if np.any(np.diff(fpr) < 0):
+        raise ValueError("fpr must be non-decreasing (the points in roc_curve's order)")
     return float(np.trapezoid(tpr, fpr))
 
 

@@ -29,6 +29,8 @@ def test_roc_rejects_bad_input():
         metrics.roc_curve([2, 3], [0.1, 0.2])
     with pytest.raises(ValueError, match="fpr and tpr must be 1-D and of the same length"):
         metrics.auc([0, 1], [0])
+    with pytest.raises(ValueError, match=r"fpr must be non-decreasing \(the points in roc_curve's order\)"):
+        metrics.auc([0.5, 0.0, 1.0], [0.5, 0.0, 1.0])
     # 0/1 labels are booleans
     assert all(np.array_equal(a, b) for a, b in zip(metrics.roc_curve([1, 0, 1], [0.3, 0.2, 0.1]),
                                                     metrics.roc_curve([True, False, True], [0.3, 0.2, 0.1])))
