@@ -156,10 +156,21 @@ def combined_table(result: MergeResult, map_p: LandmarkMap | None = None,
     """The combined map as a table: x, y, origin, index_p, index_q[, id_p, id_q], sxx, sxy, syy.
 
     ``index_p``/``index_q`` are 0-based rows of the input maps (-1: none).
+
+    Raises
+    ------
+    ValueError
+        If ``result`` is not a ``MergeResult`` or a map is not the ``LandmarkMap`` that was merged.
     """
     import pandas as pd
 
+    if not isinstance(result, MergeResult):
+        raise ValueError(f"result must be the MergeResult of merge_maps, got {type(result).__name__}")
     c = result.combined
+    for side, m, index in (("p", map_p, c.index_p), ("q", map_q, c.index_q)):
+        if m is not None and not (isinstance(m, LandmarkMap) and index.max(initial=-1) < len(m.points)):
+            raise ValueError(f"map_{side} must be the LandmarkMap (read_map) whose landmarks were merged as "
+                             f"{side}, with at least {index.max(initial=-1) + 1} rows")
     table = pd.DataFrame({"x": c.points[:, 0], "y": c.points[:, 1], "origin": c.origin.astype(str),
                           "index_p": c.index_p, "index_q": c.index_q})
     for side, m, index in (("p", map_p, c.index_p), ("q", map_q, c.index_q)):

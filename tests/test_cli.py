@@ -235,3 +235,14 @@ def test_version(capsys):
     with pytest.raises(SystemExit) as exit_:
         main(["--version"])
     assert exit_.value.code == 0 and capsys.readouterr().out == f"mapmerge {mm.__version__}\n"
+
+
+def test_write_map_names_what_is_not_the_merge_or_its_maps(tmp_path):
+    a, b, _ = _maps(tmp_path)
+    map_p, map_q = mm.read_map(a), mm.read_map(b)
+    res = mm.merge_maps(map_p.points, map_q.points, 0.02)
+    with pytest.raises(ValueError, match="result must be the MergeResult of merge_maps, got str"):
+        mm.write_map("merged", tmp_path / "m.csv")
+    with pytest.raises(ValueError, match="map_q must be the LandmarkMap .* merged as q, with at least 30 rows"):
+        mm.write_map(res, tmp_path / "m.csv", map_p, mm.read_map(pd.read_csv(b, sep="\t").head(5)))
+    assert pd.read_csv(mm.write_map(res, tmp_path / "m.csv", map_p, map_q)).id_q.notna().any()
