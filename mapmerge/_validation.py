@@ -85,12 +85,20 @@ def check_sigma(sigma, name: str = "sigma") -> float:
     return value
 
 
+def first_out_of_range(sd: np.ndarray) -> int | None:
+    """The first row of positive standard deviations ``sd`` ((n,) or (n, k)) with one outside
+    [``MIN_MAGNITUDE``, ``MAX_MAGNITUDE``], or None."""
+    bad = (sd < MIN_MAGNITUDE) | (sd > MAX_MAGNITUDE)
+    rows = np.flatnonzero(bad if bad.ndim == 1 else bad.any(axis=1))
+    return int(rows[0]) if rows.size else None
+
+
 def check_sigma_range(sigma: np.ndarray, name: str = "sigma") -> None:
     """Raise a one-line ValueError unless every positive σ lies in [``MIN_MAGNITUDE``, ``MAX_MAGNITUDE``]."""
-    if np.any((sigma < MIN_MAGNITUDE) | (sigma > MAX_MAGNITUDE)):
-        bad = sigma[(sigma < MIN_MAGNITUDE) | (sigma > MAX_MAGNITUDE)][0]
+    row = first_out_of_range(sigma)
+    if row is not None:
         raise ValueError(f"{name} must lie in [{MIN_MAGNITUDE:g}, {MAX_MAGNITUDE:g}] (rescale the map's units), "
-                         f"got {bad:g}")
+                         f"got {sigma[row]:g}")
 
 
 def check_covariances(cov, n: int, name: str):

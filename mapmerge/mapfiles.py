@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ._validation import MAX_MAGNITUDE, MIN_MAGNITUDE
+from ._validation import MAX_MAGNITUDE, MIN_MAGNITUDE, first_out_of_range
 from .result import MergeResult
 
 if TYPE_CHECKING:
@@ -121,15 +121,13 @@ def read_map(source) -> LandmarkMap:
         bad = np.flatnonzero((values["sxx"] <= 0) | (values["sxx"] * values["syy"] - values["sxy"] ** 2 <= 0))
         if bad.size:
             raise MapFileError(f"{name}: row {bad[0] + 1}: covariance (sxx, sxy, syy) must be positive definite")
-        sd = np.sqrt(np.stack([values["sxx"], values["syy"]]))
-        _check_range(sd.min(axis=0), sd.max(axis=0), name,
+        _check_range(np.sqrt(np.stack([values["sxx"], values["syy"]], axis=1)), name,
                      f"sxx and syy must lie in [{MIN_MAGNITUDE**2:g}, {MAX_MAGNITUDE**2:g}]")
     elif "sigma" in values:
         bad = np.flatnonzero(values["sigma"] <= 0)
         if bad.size:
             raise MapFileError(f"{name}: row {bad[0] + 1}: sigma must be > 0")
-        _check_range(values["sigma"], values["sigma"], name,
-                     f"sigma must lie in [{MIN_MAGNITUDE:g}, {MAX_MAGNITUDE:g}]")
+        _check_range(values["sigma"], name, f"sigma must lie in [{MIN_MAGNITUDE:g}, {MAX_MAGNITUDE:g}]")
         cov = (values["sigma"] ** 2)[:, None, None] * np.eye(2)
     ids = table["id"].to_numpy() if "id" in table.columns else None
     if ids is not None:
@@ -143,12 +141,12 @@ def read_map(source) -> LandmarkMap:
     return LandmarkMap(points=np.column_stack([values["x"], values["y"]]), ids=ids, cov=cov, source=name)
 
 
-def _check_range(low: np.ndarray, high: np.ndarray, name: str, rule: str) -> None:
-    """A MapFileError naming the first row whose standard deviations (``low`` to ``high``) leave the range
-    ``merge_maps`` accepts (``rule`` says it)."""
-    bad = np.flatnonzero((low < MIN_MAGNITUDE) | (high > MAX_MAGNITUDE))
-    if bad.size:
-        raise MapFileError(f"{name}: row {bad[0] + 1}: {rule} (rescale the map's units)")
+def _check_range(sd: np.ndarray, name: str, rule: str) -> None:
+    """A MapFileError naming the first row whose standard deviations ``sd`` leave the range ``merge_maps``
+    accepts (``rule`` says it)."""
+    row = first_out_of_range(sd)
+    if row is not None:
+        raise MapFileError(f"{name}: row {row + 1}: {rule} (rescale the map's units)")
 
 
 def combined_table(result: MergeResult, map_p: LandmarkMap | None = None,
