@@ -23,12 +23,15 @@ $(VENV)/.test: pyproject.toml | $(PY)
 paper: $(VENV)/.paper
 	$(PY) -m experiments.paper
 
-## The test suite CI runs: the whole default suite (slow end-to-end runs excluded; see test-all).
+## The test suite CI runs: the whole default suite (slow end-to-end runs excluded; see test-all),
+## on 2 processes (pytest-xdist; worksteal keeps both busy while the long end-to-end tests finish).
+PYTEST := $(PY) -m pytest -q -n 2 --dist worksteal
+
 test: $(VENV)/.test
-	$(PY) -m pytest -m "not slow" -q
+	$(PYTEST) -m "not slow"
 
 test-all: $(VENV)/.test
-	$(PY) -m pytest -q
+	$(PYTEST)
 
 ## Speed and scale benchmarks into results/bench.md (about 15 minutes).
 bench: $(VENV)/.test
