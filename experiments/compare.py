@@ -166,6 +166,8 @@ def write_tables(out: Path) -> list[Path]:
     comp = keep_timings(comparison_table(table), out / "compare.csv")
     detector = out.parent / "detector" / "limit.csv"
     limit = pd.read_csv(detector) if detector.exists() else None
+    if limit is not None and "n_landmarks" in limit:  # the detector's rows of the compared maps' size only
+        limit = limit[limit.n_landmarks.isin(comp.n_landmarks.unique())]
     paths += [*save_table(comp, out / "compare"), summary(comp, out / "summary.md"), *success_figure(comp, out, limit)]
     paths += save_table(found_table(comp), out / "found")
     if limit is not None:

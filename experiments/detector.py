@@ -3,13 +3,15 @@
     python -m experiments.detector                  # 100 pairs per cell, 0-17.5 dB, both layouts
     python -m experiments.detector --trials 20      # a quick look
     python -m experiments.detector --snrs 15 --layouts strip --trials 1000 --out results/detector/15db
+    python -m experiments.detector --landmarks 10 20 --snrs 20 --layouts strip --out results/detector/small
 
 Pairs already in ``pairs.csv`` are not computed again (each pair depends on
 its seed alone), so an interrupted or extended run resumes, and a rerun
 only rebuilds the tables.
 
 Per layout (strip; interleaved with p_detect 0.9) and SNR, on the paper's
-Fig. 1 scenario (100 landmarks per map, 75 % common):
+Fig. 1 scenario (100 landmarks per map, 75 % common; ``--landmarks`` for
+others, such as Fig. 3's 10 and 20):
 
 1. the null: ``mapmerge.exhaustive.max_log_lr`` on unrelated pairs of the
    tuning seeds 300000+k. The statistic is a maximum, so its upper tail is
@@ -50,6 +52,7 @@ the accuracy of its transform, not detection.
 from __future__ import annotations
 
 import argparse
+import itertools
 import time
 from pathlib import Path
 
@@ -71,17 +74,21 @@ TAIL_QUANTILE = 0.75
 TUNING_SEED, REPORTED_SEED = 300_000, 100_000
 
 
-def _pairs(layout: str, snr: float, seed: int, unrelated: bool):
-    return mm.simulate.make_pairs(100, 0.75, snr, [seed], unrelated=unrelated, layout=layout)
+#: Landmarks per map unless ``--landmarks`` says otherwise (the paper's Fig. 1 scenario).
+LANDMARKS = 100
 
 
-def _pair(layout: str, snr: float, seed: int, unrelated: bool):
-    return _pairs(layout, snr, seed, unrelated)[0]
+def _pairs(n: int, layout: str, snr: float, seed: int, unrelated: bool):
+    return mm.simulate.make_pairs(n, 0.75, snr, [seed], unrelated=unrelated, layout=layout)
 
 
-def statistic(layout: str, snr: float, seed: int, unrelated: bool) -> tuple[float, bool, float]:
+def _pair(n: int, layout: str, snr: float, seed: int, unrelated: bool):
+    return _pairs(n, layout, snr, seed, unrelated)[0]
+
+
+def statistic(n: int, layout: str, snr: float, seed: int, unrelated: bool) -> tuple[float, bool, float]:
     """(max Λ, transform found, seconds) of one pair."""
-    sc = _pair(layout, snr, seed, unrelated)
+    sc = _pair(n, layout, snr, seed, unrelated)
     clock = time.perf_counter()
     value, theta, t = mm.exhaustive.max_log_lr(sc.p, sc.q, sc.sigma, float(np.clip(sc.p_shared, *SHARED_RANGE)),
                                                sc.density)
@@ -89,29 +96,29 @@ def statistic(layout: str, snr: float, seed: int, unrelated: bool) -> tuple[floa
     return value, (not unrelated) and mm.metrics.transform_found(sc, theta, t), seconds
 
 
-def consensus_outcome(layout: str, snr: float, seed: int, unrelated: bool) -> tuple[bool, bool, int, int]:
+def consensus_outcome(n: int, layout: str, snr: float, seed: int, unrelated: bool) -> tuple[bool, bool, int, int]:
     """(merged, transform found, correct pairs, wrong pairs) of ``consensus`` on the same pair."""
-    sc = _pair(layout, snr, seed, unrelated)
+    sc = _pair(n, layout, snr, seed, unrelated)
     err = mm.metrics.map_errors(sc, mm.merge_maps(sc.p, sc.q, sc.sigma))
     return err["matched"], err["matched"] and not unrelated and err["transform_found"], err["correct_pairs"], \
         err["wrong_pairs"]
 
 
-def oracle_outcome(layout: str, snr: float, seed: int, unrelated: bool) -> tuple[int, int, int, int]:
+def oracle_outcome(n: int, layout: str, snr: float, seed: int, unrelated: bool) -> tuple[int, int, int, int]:
     """(correct, wrong) pairs of the oracle association, then of the transform oracle; zeros for
     unrelated pairs, which have no truth."""
     if unrelated:
         return 0, 0, 0, 0
-    oracle = mm.metrics.oracle_pairs_batch(_pairs(layout, snr, seed, unrelated))
+    oracle = mm.metrics.oracle_pairs_batch(_pairs(n, layout, snr, seed, unrelated))
     return tuple(int(oracle[f"{name}_{kind}_pairs"][0]) for name in ("oracle", "transform_oracle")
                  for kind in ("correct", "wrong"))
 
 
-def correspondence_outcome(layout: str, snr: float, seed: int, unrelated: bool) -> tuple[bool]:
+def correspondence_outcome(n: int, layout: str, snr: float, seed: int, unrelated: bool) -> tuple[bool]:
     """Whether the transform fitted on every true correspondence is within 1° and σ (False when unrelated)."""
     if unrelated:
         return (False,)
-    sc = _pair(layout, snr, seed, unrelated)
+    sc = _pair(n, layout, snr, seed, unrelated)
     fit = mm.metrics.correspondence_oracle_transform(sc)
     return (mm.metrics.transform_found(sc, fit.theta, fit.t),)
 
@@ -130,17 +137,24 @@ def null_threshold(null: np.ndarray) -> float:
     return u + beta * np.log((1 - TAIL_QUANTILE) / FALSE_ALARM)
 
 
-JOB = ["layout", "snr_db", "seed", "unrelated"]
+JOB = ["n_landmarks", "layout", "snr_db", "seed", "unrelated"]
 COLUMNS = JOB + [column for _, columns in MEASURES for column in columns]
 
 
-def cell_jobs(layout: str, snr: float, trials: int) -> list[tuple]:
+def cell_jobs(n: int, layout: str, snr: float, trials: int) -> list[tuple]:
     """The null pairs (tuning seeds), then the related pairs (reported seeds), of one cell."""
-    return [(layout, float(snr), int(seed), unrelated)
+    return [(int(n), layout, float(snr), int(seed), unrelated)
             for unrelated, base in ((True, TUNING_SEED), (False, REPORTED_SEED)) for seed in base + np.arange(trials)]
 
 
-def run_pairs(trials: int, n_jobs: int, path: Path, snrs=SNRS, layouts=LAYOUTS) -> pd.DataFrame:
+def _read(path: Path) -> pd.DataFrame:
+    table = pd.read_csv(path)
+    if "n_landmarks" not in table:  # written before maps of other sizes were measured
+        table.insert(0, "n_landmarks", LANDMARKS)
+    return table
+
+
+def run_pairs(trials: int, n_jobs: int, path: Path, snrs=SNRS, layouts=LAYOUTS, landmarks=(LANDMARKS,)) -> pd.DataFrame:
     """Every measure of every null and related pair: one row each, in job order.
 
     ``path`` (``pairs.csv``) is read first and rewritten after each cell
@@ -149,39 +163,38 @@ def run_pairs(trials: int, n_jobs: int, path: Path, snrs=SNRS, layouts=LAYOUTS) 
     """
     known: dict[tuple, dict] = {}
     if path.is_file():
-        old = pd.read_csv(path)
+        old = _read(path)
         known = {job: {k: v for k, v in row.items() if not pd.isna(v)}
                  for job, row in zip(old[JOB].itertuples(index=False, name=None),
                                      old.drop(columns=JOB).to_dict("records"))}
     jobs = []
-    for layout in layouts:
-        for snr in snrs:
-            cell = cell_jobs(layout, snr, trials)
-            changed = False
-            for measure, columns in MEASURES:
-                todo = [job for job in cell if not set(columns) <= known.get(job, {}).keys()]
-                out = Parallel(n_jobs=n_jobs, batch_size=4)(delayed(measure)(*job) for job in todo)
-                for job, values in zip(todo, out):
-                    known.setdefault(job, {}).update(zip(columns, values))
-                changed |= bool(todo)
-            jobs += cell
-            if changed:
-                listed = set(jobs)
-                order = jobs + [job for job in known if job not in listed]
-                table = pd.DataFrame([{**dict(zip(JOB, job)), **known[job]} for job in order], columns=COLUMNS)
-                table.to_csv(path, index=False, float_format="%.10g")  # seconds: its one machine-dependent column
+    for n, layout, snr in itertools.product(landmarks, layouts, snrs):
+        cell = cell_jobs(n, layout, snr, trials)
+        changed = False
+        for measure, columns in MEASURES:
+            todo = [job for job in cell if not set(columns) <= known.get(job, {}).keys()]
+            out = Parallel(n_jobs=n_jobs, batch_size=4)(delayed(measure)(*job) for job in todo)
+            for job, values in zip(todo, out):
+                known.setdefault(job, {}).update(zip(columns, values))
+            changed |= bool(todo)
+        jobs += cell
+        if changed:
+            listed = set(jobs)
+            order = jobs + [job for job in known if job not in listed]
+            table = pd.DataFrame([{**dict(zip(JOB, job)), **known[job]} for job in order], columns=COLUMNS)
+            table.to_csv(path, index=False, float_format="%.10g")  # seconds: its one machine-dependent column
     # The table is built from the file's values, so a resumed run gives the same table as a fresh one.
-    return pd.DataFrame(jobs, columns=JOB).merge(pd.read_csv(path), on=JOB, how="left", validate="one_to_one")
+    return pd.DataFrame(jobs, columns=JOB).merge(_read(path), on=JOB, how="left", validate="one_to_one")
 
 
 def limit_table(runs: pd.DataFrame) -> pd.DataFrame:
     rows = []
-    for (layout, snr), g in runs.groupby(["layout", "snr_db"], sort=False):
+    for (n, layout, snr), g in runs.groupby(["n_landmarks", "layout", "snr_db"], sort=False):
         null, related = g[g.unrelated].log_lr.to_numpy(), g[~g.unrelated]
         found = related[related.consensus_found.astype(bool)]
         threshold = null_threshold(null)
         detected = related.log_lr.to_numpy() >= threshold
-        rows.append({"layout": layout, "snr_db": snr, "null_pairs": len(null), "null_max": null.max(),
+        rows.append({"n_landmarks": n, "layout": layout, "snr_db": snr, "null_pairs": len(null), "null_max": null.max(),
                      "threshold": threshold, "related_pairs": len(related),
                      "detected_rate": detected.mean(), "found_rate": (detected & related.found.to_numpy()).mean(),
                      # The ML transform's accuracy whatever its statistic: what no threshold could improve.
@@ -206,12 +219,19 @@ def main(argv=None) -> None:
     parser.add_argument("--n-jobs", type=int, default=2)
     parser.add_argument("--snrs", type=float, nargs="+", default=SNRS, help="SNRs in dB (default: 0-17.5 by 2.5)")
     parser.add_argument("--layouts", nargs="+", choices=LAYOUTS, default=LAYOUTS)
+    parser.add_argument("--landmarks", type=int, nargs="+", default=[LANDMARKS],
+                        help=f"landmarks per map (default: {LANDMARKS})")
     args = parser.parse_args(argv)
     if args.trials < 8:
         raise SystemExit("--trials must be >= 8 (the null's tail fit needs them)")
+    for n, snr in itertools.product(args.landmarks, args.snrs):
+        try:
+            mm.simulate.check_scenario(n, 0.75, snr, 1.0)
+        except mm.simulate.ScenarioError as exc:
+            raise SystemExit(f"--{'landmarks' if exc.argument == 'n_landmarks' else 'snrs'} {exc.value!r}: {exc.rule}")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    runs = run_pairs(args.trials, args.n_jobs, out / "pairs.csv", args.snrs, args.layouts)
+    runs = run_pairs(args.trials, args.n_jobs, out / "pairs.csv", args.snrs, args.layouts, args.landmarks)
     for path in save_table(limit_table(runs), out / "limit"):
         print(path)
 

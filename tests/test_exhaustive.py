@@ -78,19 +78,19 @@ def test_limit_experiment_resumes_without_recomputing_finished_pairs(tmp_path, m
 
     calls = []
 
-    def fake_statistic(layout, snr, seed, unrelated):
+    def fake_statistic(n, layout, snr, seed, unrelated):
         calls.append("detector")
         return float(seed % 97) + snr, not unrelated, 0.0
 
-    def fake_consensus(layout, snr, seed, unrelated):
+    def fake_consensus(n, layout, snr, seed, unrelated):
         calls.append("consensus")
         return seed % 2 == 0, seed % 3 == 0 and not unrelated, seed % 5, seed % 2
 
-    def fake_oracle(layout, snr, seed, unrelated):
+    def fake_oracle(n, layout, snr, seed, unrelated):
         calls.append("oracle")
         return seed % 7, 1, seed % 7 + 1, 2
 
-    def fake_correspondence(layout, snr, seed, unrelated):
+    def fake_correspondence(n, layout, snr, seed, unrelated):
         calls.append("correspondence")
         return (not unrelated and seed % 4 != 1,)
 
@@ -114,6 +114,12 @@ def test_limit_experiment_resumes_without_recomputing_finished_pairs(tmp_path, m
     calls.clear()
     short = detector.run_pairs(4, 1, path, snrs)
     assert not calls and len(short) == n // 2 and len(pd.read_csv(path)) == n
+    # A file from before other map sizes were measured holds 100-landmark pairs; another size adds its own.
+    pd.read_csv(path).drop(columns="n_landmarks").to_csv(path, index=False)
+    pd.testing.assert_frame_equal(detector.run_pairs(8, 1, path, snrs), fresh)
+    both = detector.run_pairs(8, 1, path, snrs, landmarks=(100, 10))
+    assert calls.count("detector") == n and len(both) == 2 * n and len(pd.read_csv(path)) == 2 * n
+    assert list(detector.limit_table(both).n_landmarks) == [100] * 4 + [10] * 4
     table = detector.limit_table(fresh)
     assert list(table.consensus_false_merges) == [4] * 4  # even seeds among 8 unrelated per cell
     # Association is judged where consensus found the transform: seeds divisible by 3.
