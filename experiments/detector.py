@@ -228,7 +228,9 @@ def main(argv=None) -> None:
         try:
             mm.simulate.check_scenario(n, 0.75, snr, 1.0)
         except mm.simulate.ScenarioError as exc:
-            raise SystemExit(f"--{'landmarks' if exc.argument == 'n_landmarks' else 'snrs'} {exc.value!r}: {exc.rule}")
+            # The overlap is fixed here: an overlap too small for 3 common landmarks means too few landmarks.
+            flag, value = ("snrs", snr) if exc.argument == "snr_db" else ("landmarks", n)
+            raise SystemExit(f"--{flag} {value!r}: {exc.rule}")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     runs = run_pairs(args.trials, args.n_jobs, out / "pairs.csv", args.snrs, args.layouts, args.landmarks)

@@ -1,5 +1,7 @@
 """The exhaustive ML detector (a limit for the matchers, not a method)."""
 
+import re
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -150,3 +152,17 @@ def test_pairs_of_small_sets_are_the_k_d_trees_pairs_in_its_order_and_bits(rng):
         j, d2, i = _near_d2(P, x, radius)
         assert j.tolist() == tree["i"].tolist() and i.tolist() == tree["j"].tolist()
         assert d2.tobytes() == (tree["v"] ** 2).tobytes()
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--landmarks", "2"], "--landmarks 2: must be an integer >= 3"),
+    # 0.75 x 3 rounds to 2 common landmarks: the landmark count is at fault, not the fixed overlap.
+    (["--landmarks", "3"], "--landmarks 3: must make overlap * n_landmarks round to at least 3"),
+    (["--snrs", "1000"], "--snrs 1000.0: must be a number of dB"),
+])
+def test_detector_refuses_bad_arguments_in_one_line_naming_them(tmp_path, argv, message):
+    from experiments import detector
+
+    with pytest.raises(SystemExit, match=re.escape(message)):
+        detector.main([*argv, "--trials", "8", "--out", str(tmp_path / "out")])
+    assert not (tmp_path / "out").exists()
