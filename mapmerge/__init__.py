@@ -18,6 +18,8 @@ on a batch of map pairs; the one-pair functions are its batch of one.
 >>> res = mm.merge_maps(sc.p, sc.q, sc.sigma)
 """
 
+from importlib.metadata import PackageNotFoundError, version
+
 from . import exhaustive, metrics, simulate
 from .alignment import Alignment, align, rotation, wrap_angle
 from .combining import CombinedMap
@@ -54,7 +56,10 @@ __all__ = [
     "triangulate",
     "wrap_angle",
 ]
-__version__ = "0.2.0"
+try:
+    __version__ = version("mapmerge")
+except PackageNotFoundError:  # running from a source tree that was never installed
+    __version__ = "unknown"
 
 #: Modules loaded on first use as ``mapmerge.<name>``: each imports what only it needs.
 _LAZY_MODULES = ("datasets", "plotting", "search", "consensus", "baselines", "cli")
