@@ -10,7 +10,7 @@ ground truth and metrics to measure them.
 One module per stage: ``triangles``, ``statistic`` (GLRT), ``alignment``,
 ``matching`` (LP and driver), ``combining`` (eq. 15), ``consensus``,
 ``baselines``, ``result``, ``merging`` (the method registry and
-``merge_maps``), ``simulate``, ``metrics``, ``datasets``. Every stage works
+``merge_maps``), ``group`` (``merge_many``: N maps), ``simulate``, ``metrics``, ``datasets``. Every stage works
 on a batch of map pairs; the one-pair functions are its batch of one.
 
 >>> import mapmerge as mm
@@ -23,6 +23,7 @@ from importlib.metadata import PackageNotFoundError, version
 from . import exhaustive, metrics, simulate
 from .alignment import Alignment, align, rotation, wrap_angle
 from .combining import CombinedMap
+from .group import GroupMerge, merge_many
 from .mapfiles import LandmarkMap, MapFileError, read_map, write_map
 from .matching import log_tau_from_chi2, resolve_log_tau
 from .merging import METHODS, ResidualMatch, merge_batch, merge_maps, residual_match
@@ -33,6 +34,7 @@ from .triangles import Triangles, triangulate
 __all__ = [
     "Alignment",
     "CombinedMap",
+    "GroupMerge",
     "LandmarkMap",
     "MapFileError",
     "METHODS",
@@ -46,6 +48,7 @@ __all__ = [
     "log_tau_from_chi2",
     "merge_batch",
     "merge_maps",
+    "merge_many",
     "read_map",
     "write_map",
     "metrics",

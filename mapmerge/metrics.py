@@ -476,3 +476,98 @@ def oracle_pairs_batch(scenarios) -> dict:
             ok = scenarios.ids_p[b, pairs[:, 0]] == scenarios.ids_q[b, pairs[:, 1]]
             counts[f"{name}_correct_pairs"][b], counts[f"{name}_wrong_pairs"][b] = ok.sum(), (~ok).sum()
     return counts
+
+
+def group_errors(team, group) -> dict:
+    """Errors of a many-map merge (``merge_many``) against the team's ground truth.
+
+    A placed map is placed *correctly* when its frame's rotation is within
+    ``SUCCESS_DEG`` of the truth and the RMS distance between its landmarks
+    (their true positions) carried into the reference frame by the
+    estimated and by the true frame is within ``FOUND_RMS_SIGMAS`` σ (the
+    pairwise "transform found" rule); any placement of a stranger, or of
+    anything in the frame of a stranger, is *wrong*.
+
+    Parameters
+    ----------
+    team : Team or any object with its attributes
+        ``maps``, ``ids`` (true landmark id of each row), ``truth`` (true
+        positions by id in a world frame; NaN rows are not scored),
+        ``theta``, ``t`` (each map's frame, ``maps[i] ≈ R(θ_i) world + t_i``),
+        ``sigma`` (one, or one per map) and ``stranger``.
+    group : GroupMerge
+
+    Returns
+    -------
+    dict
+        ``placed_correct``, ``placed_wrong``, ``unplaced`` (team maps left
+        out) and ``strangers_placed`` (counts); ``all_correct`` (every team
+        map placed correctly and no stranger placed); ``status`` (per map:
+        "correct", "wrong", "unplaced"), ``rot_err_deg`` and ``registration``
+        (per map, NaN unplaced); ``track_purity`` (multi-map tracks holding
+        one true landmark), ``track_completeness`` (landmarks seen by two or
+        more placed team maps whose sightings are all in one track),
+        ``duplicates`` (extra tracks of landmarks split over several),
+        ``fused_rmse`` (all tracks) and ``shared_rmse`` (multi-map tracks)
+        against the truth in the reference frame.
+    """
+    N = len(team.maps)
+    ref = int(group.reference)
+    stranger = np.asarray(team.stranger, dtype=bool)
+    sigma = np.broadcast_to(np.asarray(team.sigma, dtype=float), (N,))
+    truth = np.asarray(team.truth, dtype=float)
+    # True frames relative to the reference: map i ≈ R(θ_i - θ_r) x_ref + t_i - R(θ_i - θ_r) t_r.
+    true_theta = np.asarray(team.theta, dtype=float) - team.theta[ref]
+    true_t = np.asarray(team.t, dtype=float) - rotate(true_theta, np.broadcast_to(team.t[ref], (N, 1, 2)))[:, 0]
+    rot_err = np.full(N, np.nan)
+    registration = np.full(N, np.nan)
+    status = np.where(group.placed, "wrong", "unplaced").astype(object)
+    world_to_ref = (lambda x: rotate(team.theta[ref], x) + team.t[ref])
+    for i in np.flatnonzero(group.placed):
+        if stranger[i] or stranger[ref]:
+            continue
+        x = world_to_ref(truth[team.ids[i]])
+        x = x[~np.isnan(x[:, 0])]
+        d = rotate(group.theta[i], x) + group.t[i] - rotate(true_theta[i], x) - true_t[i]
+        rot_err[i] = np.degrees(np.abs(wrap_angle(group.theta[i] - true_theta[i])))
+        registration[i] = np.sqrt(np.mean(np.sum(d**2, axis=1)) / 2)
+        if _found(rot_err[i], registration[i], sigma[i]):
+            status[i] = "correct"
+    if stranger[ref] and group.placed.sum() == 1:
+        status[ref] = "unplaced"  # a stranger alone in its own frame placed nothing
+    team_map = ~stranger
+    ids = np.where(group.tracks >= 0, 0, -1)
+    for i in range(N):
+        rows = group.tracks[:, i]
+        ids[rows >= 0, i] = np.asarray(team.ids[i])[rows[rows >= 0]]
+    members = (group.tracks >= 0).sum(axis=1)
+    multi = members >= 2
+    first = ids[np.arange(len(ids)), np.argmax(group.tracks >= 0, axis=1)] if len(ids) else np.zeros(0, np.intp)
+    pure = np.all((ids == first[:, None]) | (ids < 0), axis=1)
+    # Completeness: landmarks sighted by two or more placed team maps, all sightings in one track.
+    sighted = [np.asarray(team.ids[i]) for i in range(N) if group.placed[i] and team_map[i]]
+    seen_ids, seen_count = np.unique(np.concatenate(sighted) if sighted else np.zeros(0, np.intp), return_counts=True)
+    shared_ids = seen_ids[seen_count >= 2]
+    team_tracks = np.any((group.tracks >= 0) & team_map, axis=1)
+    tracks_per_id = {}
+    for k in np.flatnonzero(team_tracks):
+        for lm in np.unique(ids[k][ids[k] >= 0]):
+            tracks_per_id[lm] = tracks_per_id.get(lm, 0) + 1
+    complete = np.mean([tracks_per_id.get(lm, 0) == 1 for lm in shared_ids]) if shared_ids.size else np.nan
+    duplicates = int(sum(n - 1 for n in tracks_per_id.values()))
+    scored = pure & team_tracks & ~np.isnan(truth[first, 0]) if len(ids) else np.zeros(0, bool)
+    err2 = np.sum((group.merged - world_to_ref(truth[first])) ** 2, axis=1) if len(ids) else np.zeros(0)
+    with np.errstate(invalid="ignore"):
+        fused = np.sqrt(np.mean(err2[scored]) / 2) if scored.any() else np.nan
+        shared = np.sqrt(np.mean(err2[scored & multi]) / 2) if (scored & multi).any() else np.nan
+    return {
+        "placed_correct": int(np.sum((status == "correct") & team_map)),
+        "placed_wrong": int(np.sum(status == "wrong")),
+        "unplaced": int(np.sum((status == "unplaced") & team_map)),
+        "strangers_placed": int(np.sum(group.placed & stranger & (group.placed.sum() > 1))),
+        "all_correct": bool(np.all(status[team_map] == "correct") and not np.any(status == "wrong")),
+        "status": list(status), "rot_err_deg": rot_err, "registration": registration,
+        "track_purity": float(np.mean(pure[multi])) if multi.any() else np.nan,
+        "track_completeness": float(complete), "duplicates": duplicates,
+        "fused_rmse": float(fused), "shared_rmse": float(shared),
+    }

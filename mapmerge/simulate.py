@@ -617,3 +617,206 @@ def check_scenario(n_landmarks, overlap, snr_db, aspect, layout="strip", p_detec
         raise ScenarioError("overlap", overlap, f"must make overlap * n_landmarks round to at least 3 common "
                                                 f"landmarks (n_landmarks {n})")
     return n, c
+
+
+#: How agents' windows are arranged in ``make_group`` (see its docstring).
+TOPOLOGIES = ("chain", "ring", "star", "random")
+#: Most agents in one synthetic team (strangers included).
+MAX_AGENTS = 1000
+
+
+@dataclass(frozen=True)
+class Team:
+    """A synthetic team of agents' maps and its ground truth (``make_group``).
+
+    Attributes
+    ----------
+    maps : list of (n_i, 2) ndarray
+        Each agent's noisy landmark map in its own frame (rows shuffled).
+    ids : list of (n_i,) int ndarray
+        True landmark id of each row; equal ids are the same landmark.
+    truth : (L, 2) ndarray
+        True position of landmark id k in the world frame.
+    theta : (N,) ndarray
+        Agent i's frame: ``maps[i] ≈ R(θ_i) truth[ids[i]] + t_i`` (NaN for strangers,
+        whose landmarks belong to no world of the team's).
+    t : (N, 2) ndarray
+    sigma : float
+        Per-coordinate noise standard deviation of every map.
+    covs : list of (n_i, 2, 2) ndarray
+        Each row's noise covariance in its map's frame (σ² I).
+    stranger : (N,) bool ndarray
+        Agents that share no landmark with anyone (they must stay unplaced).
+    centres : (N, 2) ndarray
+        Centre of each agent's window in the world frame (a stranger's in its own world).
+    snr_db : float
+    topology : str
+    """
+
+    maps: list
+    ids: list
+    truth: np.ndarray
+    theta: np.ndarray
+    t: np.ndarray
+    sigma: float
+    covs: list
+    stranger: np.ndarray
+    centres: np.ndarray
+    snr_db: float
+    topology: str
+
+    @property
+    def n_agents(self) -> int:
+        return len(self.maps)
+
+
+def _lens_fraction(d, r: float):
+    """Area shared by two discs of radius r at centre distance d, as a fraction of one disc."""
+    d = np.clip(np.asarray(d, dtype=float) / (2 * r), 0.0, 1.0)
+    return (2 / np.pi) * (np.arccos(d) - d * np.sqrt(1 - d**2))
+
+
+def _neighbour_distance(overlap: float, r: float) -> float:
+    """Centre distance at which two discs of radius r share ``overlap`` of their area (bisection)."""
+    lo, hi = 0.0, 2 * r
+    for _ in range(60):  # 2r / 2^60: far below any landmark spacing
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if _lens_fraction(mid, r) > overlap else (lo, mid)
+    return 0.5 * (lo + hi)
+
+
+def _window_centres(n_agents: int, topology: str, d: float, rng: np.random.Generator) -> np.ndarray:
+    """Window centres: neighbours in the topology's graph lie d apart (see ``make_group``)."""
+    k = np.arange(n_agents)
+    if topology == "chain":
+        return np.stack([k * d, np.zeros(n_agents)], axis=1)
+    if topology == "ring":
+        # Consecutive centres, the last and the first included, are one chord d apart.
+        radius = d / (2 * np.sin(np.pi / n_agents))
+        phi = 2 * np.pi * k / n_agents
+        return radius * np.stack([np.cos(phi), np.sin(phi)], axis=1)
+    if topology == "star":
+        phi = 2 * np.pi * (k[1:] - 1) / max(n_agents - 1, 1)
+        return np.concatenate([np.zeros((1, 2)), d * np.stack([np.cos(phi), np.sin(phi)], axis=1)])
+    # random: each agent next to one earlier agent drawn uniformly, in a uniform direction.
+    u = rng.random((n_agents, 2))
+    centres = np.zeros((n_agents, 2))
+    for i in range(1, n_agents):
+        parent = int(u[i, 0] * i)
+        phi = 2 * np.pi * u[i, 1]
+        centres[i] = centres[parent] + d * np.array([np.cos(phi), np.sin(phi)])
+    return centres
+
+
+def _window_landmarks(centres: np.ndarray, r: float, density: float, rng: np.random.Generator) -> np.ndarray:
+    """Landmarks uniform at ``density`` over the union of discs of radius r (a Poisson process)."""
+    lo, hi = centres.min(axis=0) - r, centres.max(axis=0) + r
+    count = rng.poisson(density * np.prod(hi - lo))
+    x = lo + (hi - lo) * rng.random((count, 2))
+    seen = np.zeros(count, dtype=bool)
+    for c in centres:
+        seen |= np.sum((x - c) ** 2, axis=1) <= r * r
+    return x[seen]
+
+
+def make_group(n_agents: int = 5, n_landmarks: int = 100, overlap: float = 0.5, snr_db: float = 20.0,
+               layout: str = "strip", topology: str = "ring", n_strangers: int = 0,
+               p_detect: float = DEFAULT_P_DETECT, rng=None) -> Team:
+    """Draw a synthetic team: ``n_agents`` robots whose maps overlap along a topology.
+
+    Each agent explores a disc of area ``n_landmarks`` in a world of landmarks
+    uniform at unit density (a Poisson process over the union of the discs),
+    so a map holds ``n_landmarks`` landmarks on average. Neighbouring agents'
+    discs share the fraction ``overlap`` of their area:
+
+    - ``chain``: agents on a line, agent i next to i ± 1;
+    - ``ring``: agents on a circle, the last next to the first (the loop closes);
+    - ``star``: agent 0 in the centre, every other agent next to it (and to
+      neighbours of its own when many crowd around the centre);
+    - ``random``: agent i next to an earlier agent drawn uniformly, in a
+      uniform direction (a random tree, with chance overlaps besides).
+
+    Agents further apart share what their discs' geometry gives (nothing beyond
+    2 radii). ``layout="strip"``: an agent sees every landmark of its disc;
+    ``"interleaved"``: each landmark independently with probability
+    ``p_detect`` (the density is 1 / ``p_detect``, keeping the mean map size),
+    so landmarks only one agent holds lie among the shared ones. Each agent's
+    frame is the world through a uniform random rotation and a translation
+    uniform over the world's extent, then N(0, σ²) noise per coordinate, σ from
+    ``snr_db`` over the Delaunay graph of all landmarks the team holds, as in
+    ``make_pair``. ``n_strangers`` more agents map discs of worlds of their
+    own (same size, density and σ): they share nothing with the team.
+
+    The random draws, in order: the random topology's placements, the world's
+    landmarks, the detections, then per agent (strangers last) its own
+    world's landmarks (strangers only), frame, noise and row permutation.
+
+    Parameters
+    ----------
+    n_agents : int, default 5
+        Agents of the team, >= 2.
+    n_landmarks : int, default 100
+        Mean landmarks per map, >= 3.
+    overlap : float, default 0.5
+        Share of a disc's area common to neighbouring agents, in (0, 1).
+    snr_db : float, default 20
+    layout : {"strip", "interleaved"}, default "strip"
+    topology : {"chain", "ring", "star", "random"}, default "ring"
+    n_strangers : int, default 0
+        Agents unrelated to the team, appended after it, >= 0.
+    p_detect : float, default 0.9
+        Interleaved layout: probability that an agent sees a landmark of its disc, in (0, 1].
+    rng : None, int, SeedSequence or Generator
+
+    Returns
+    -------
+    Team
+
+    Raises
+    ------
+    ScenarioError
+        On an argument out of its range (naming it).
+    """
+    check_scenario(n_landmarks, 1.0, snr_db, DEFAULT_ASPECT, layout, p_detect)
+    if not (_real(n_agents) and int(n_agents) == n_agents and 2 <= n_agents <= MAX_AGENTS):
+        raise ScenarioError("n_agents", n_agents, f"must be an integer in [2, {MAX_AGENTS}]")
+    if not (_real(n_strangers) and int(n_strangers) == n_strangers and 0 <= n_strangers <= MAX_AGENTS - n_agents):
+        raise ScenarioError("n_strangers", n_strangers, f"must be an integer in [0, {MAX_AGENTS} - n_agents]")
+    if not (_real(overlap) and 0.0 < overlap < 1.0):
+        raise ScenarioError("overlap", overlap, "must be in (0, 1) (the share of neighbouring discs' area)")
+    if topology not in TOPOLOGIES:
+        raise ScenarioError("topology", topology, f"must be one of {list(TOPOLOGIES)}")
+    if n_landmarks * (n_agents + n_strangers) > MAX_MAP_LANDMARKS:
+        raise ScenarioError("n_landmarks", n_landmarks, f"must keep n_landmarks * (n_agents + n_strangers) at "
+                                                        f"most {MAX_MAP_LANDMARKS:,}")
+    rng = np.random.default_rng(check_rng(rng))
+    n_agents, n_strangers = int(n_agents), int(n_strangers)
+    r = np.sqrt(n_landmarks / np.pi)
+    detect = 1.0 if layout == "strip" else float(p_detect)
+    centres = _window_centres(n_agents, topology, _neighbour_distance(overlap, r), rng)
+    world = _window_landmarks(centres, r, 1.0 / detect, rng)
+    seen = [(np.sum((world - c) ** 2, axis=1) <= r * r) & (rng.random(len(world)) < detect) for c in centres]
+    sigma, _ = sigma_from_snr(world[np.any(seen, axis=0)], float(snr_db))
+    truth, ids, centre = [world], [np.flatnonzero(s) for s in seen], list(centres)
+    extent = float(np.max(np.ptp(world, axis=0)))
+    maps, theta, t = [], [], []
+    for i in range(n_agents + n_strangers):
+        if i >= n_agents:
+            own = _window_landmarks(np.zeros((1, 2)), r, 1.0 / detect, rng)
+            own = own[rng.random(len(own)) < detect]
+            ids.append(sum(len(w) for w in truth) + np.arange(len(own)))
+            truth.append(own)
+            centre.append(np.zeros(2))
+        u = rng.random(3)
+        theta.append(-np.pi + 2 * np.pi * u[0])
+        t.append(extent * (2 * u[1:] - 1))
+        x = np.concatenate(truth)[ids[i]]
+        maps.append(rotate(theta[i], x) + t[i] + sigma * rng.standard_normal(x.shape))
+        perm = rng.permutation(len(x))
+        maps[i], ids[i] = maps[i][perm], ids[i][perm]
+    stranger = np.arange(n_agents + n_strangers) >= n_agents
+    theta, t = np.array(theta), np.array(t)
+    theta[stranger], t[stranger] = np.nan, np.nan
+    return Team(maps=maps, ids=ids, truth=np.concatenate(truth), theta=theta, t=t, sigma=sigma,
+                covs=[np.broadcast_to(sigma**2 * np.eye(2), (len(m), 2, 2)) for m in maps], stranger=stranger,
+                centres=np.array(centre), snr_db=float(snr_db), topology=topology)

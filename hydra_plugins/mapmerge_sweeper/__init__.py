@@ -1,1 +1,0 @@
-"""mapmerge's Hydra sweeper plugin (Hydra finds plugins in the ``hydra_plugins`` namespace)."""

@@ -1,0 +1,665 @@
+"""Merge N agents' landmark maps into one globally consistent map.
+
+``merge_many`` generalises the two-map pipeline to a team of N maps:
+
+1. **Pairwise merges.** Every pair of maps (or, for large teams, each map
+   with its ``CANDIDATE_NEIGHBOURS`` most similar maps by a cheap score:
+   how many of their Delaunay triangles have nearly equal side lengths) is
+   merged by ``merge_maps``. A matched pair (i, j) is an *edge*: a rigid
+   motion ``map_j ≈ R(θ_ij) map_i + t_ij`` with its (θ, t) covariance and
+   its landmark correspondences.
+2. **Consistency around cycles.** Edges are taken strongest first (most
+   correspondences). An edge joining two groups of maps not yet connected
+   extends their spanning tree; an edge inside a group closes a cycle, and
+   is kept only when the tree's motion from i to j, composed along the
+   tree path with its propagated covariance, agrees with the edge within
+   the χ²₃ bound of tail probability ``CYCLE_P``. An edge that fails is
+   *inconsistent* and takes no further part. The kept edges are one
+   mutually consistent set (every cycle they close passed its test when it
+   was closed).
+3. **Tracks.** Landmarks linked by the kept edges' correspondences form
+   connected components. A component holding two landmarks of one map is
+   split: its links are re-added closest first (Mahalanobis distance of the
+   two landmarks in the reference frame) and a link that would put two
+   landmarks of one map in one track is dropped.
+4. **Joint maximum likelihood.** Unknowns: every placed frame (θ_i, t_i)
+   but the reference's, and every landmark seen by two or more maps (in the
+   reference frame). Each landmark estimate of map i observes
+   ``R(θ_i) x + t_i`` with its own covariance. Gauss-Newton from the
+   spanning-tree initialisation solves it, eliminating the landmarks by
+   their Schur complement (each observation couples one frame and one
+   landmark, so the reduced system has only 3 unknowns per map), with Huber
+   weights (``HUBER_K``) so that a wrong correspondence cannot drag a frame.
+   For two maps and equal noise this is the closed form of the paper's
+   eq. (15); frame and landmark covariances are the blocks of the inverse
+   Fisher information.
+
+The baselines use the same pairwise merges: ``placement="tree"`` places
+every map along the maximum spanning tree of all matched pairs (weight: the
+number of correspondences) and ``"chain"`` places the maps in order, map k
+through its match with the latest placed map that matched it (sequential
+chaining). Neither checks cycles nor optimises jointly: their landmarks are
+the information-weighted means of the placed estimates.
+
+A map that joins nobody is unplaced, never forced: the result's frame is
+``reference``'s when it is placed, else that of the lowest-numbered map of
+the largest group.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import sparse
+from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
+from scipy.spatial import Delaunay, cKDTree
+from scipy.special import chdtri
+
+from ._validation import check_covariances, check_points, check_rng, check_sigma
+from .alignment import ROT90, covariance_in_p_frame, mapped_covariance, rotate, rotation, wrap_angle
+from .matching import resolve_log_tau
+from .merging import DEFAULT_TAU, get_method, merge_maps
+
+#: Tail probability of the χ²₃ test a cycle of edges must pass: a cycle of
+#: correct edges is refused this often (with correct covariances).
+CYCLE_P = 1e-3
+#: Huber threshold on an observation's whitened residual norm in the joint
+#: ML: a correct landmark estimate lies beyond it with probability e^(-K²/2) ≈ 1 %.
+HUBER_K = 3.0
+#: Teams up to this size try every pair of maps; larger ones only candidates.
+ALL_PAIRS_MAX_AGENTS = 12
+#: Candidate partners per map in a large team (by the triangle-shape score).
+CANDIDATE_NEIGHBOURS = 6
+#: Side-length gate of the candidate score, in standard deviations of a side's difference (2σ).
+SHAPE_GATE = 3.0
+#: Gauss-Newton: most iterations, and the step (relative to the maps' extent) that ends them.
+GN_MAX_ITER = 50
+GN_TOL = 1e-12
+#: How the frames are found: see the module docstring.
+PLACEMENTS = ("joint", "tree", "chain")
+#: An edge's status after assembly.
+ACCEPTED, INCONSISTENT, NO_MATCH = "accepted", "inconsistent", "no match"
+
+
+@dataclass(frozen=True)
+class Edge:
+    """One pairwise merge of a team: ``maps[j] ≈ R(θ) maps[i] + t``.
+
+    Attributes
+    ----------
+    i, j : int
+        The maps, i < j.
+    status : {"accepted", "inconsistent", "no match"}
+        Matched and kept; matched but refused by the cycle test; not matched.
+    theta : float
+        Rotation (NaN when not matched).
+    t : (2,) ndarray
+    cov : (3, 3) ndarray
+        Covariance of (θ, t_x, t_y) (NaN when not matched).
+    pairs : (m, 2) int ndarray
+        Landmark correspondences (row in map i, row in map j).
+    """
+
+    i: int
+    j: int
+    status: str
+    theta: float
+    t: np.ndarray
+    cov: np.ndarray
+    pairs: np.ndarray
+
+    @property
+    def matched(self) -> bool:
+        return self.status != NO_MATCH
+
+
+@dataclass(frozen=True)
+class GroupMerge:
+    """Outcome of ``merge_many``: N maps in the frame of map ``reference``.
+
+    Attributes
+    ----------
+    reference : int
+        The map whose frame the result is in.
+    placed : (N,) bool ndarray
+        Maps brought into that frame.
+    theta, t : (N,), (N, 2) ndarray
+        Map i's frame: ``maps[i] ≈ R(θ_i) x + t_i`` for x in the reference
+        frame (NaN for unplaced maps; 0 for the reference).
+    frame_cov : (N, 3, 3) ndarray
+        Covariance of (θ_i, t_i) (zeros for the reference, NaN unplaced).
+    tracks : (K, N) int ndarray
+        Row of fused landmark k in map i, or -1 (every landmark of a placed
+        map is in exactly one track; unplaced maps' columns are all -1).
+    merged : (K, 2) ndarray
+        The fused landmarks in the reference frame.
+    merged_cov : (K, 2, 2) ndarray
+    edges : list of Edge
+        Every pairwise merge tried.
+    placement : str
+    """
+
+    reference: int
+    placed: np.ndarray
+    theta: np.ndarray
+    t: np.ndarray
+    frame_cov: np.ndarray
+    tracks: np.ndarray
+    merged: np.ndarray
+    merged_cov: np.ndarray
+    edges: list
+    placement: str
+
+    @property
+    def n_placed(self) -> int:
+        return int(self.placed.sum())
+
+    def edge_counts(self) -> dict:
+        """Number of edges of each status."""
+        return {s: sum(e.status == s for e in self.edges) for s in (ACCEPTED, INCONSISTENT, NO_MATCH)}
+
+
+def merge_many(maps, sigma=None, covs=None, method: str = "consensus", tau=DEFAULT_TAU, reference: int = 0,
+               placement: str = "joint", candidates=None, n_jobs: int = 1, rng=None) -> GroupMerge:
+    """Merge N landmark maps into one map in the frame of one of them.
+
+    Parameters
+    ----------
+    maps : sequence of N (n_i, 2) array_like
+        Each agent's landmark map in its own frame, N >= 2, each as
+        ``merge_maps`` takes a map.
+    sigma : float or (N,) array_like, optional
+        Per-coordinate standard deviation of each map's landmarks (one for
+        all, or one per map). May be left out when ``covs`` are given.
+    covs : sequence of N arrays, optional
+        Each map's per-landmark covariances, (n_i, 2, 2), or (n_i,)
+        variances per coordinate.
+    method, tau
+        The pairwise method and threshold, as for ``merge_maps``.
+    reference : int, default 0
+        The map whose frame the result is in, when it is placed.
+    placement : {"joint", "tree", "chain"}, default "joint"
+        Cycle-checked joint ML (the method), or a baseline (module docstring).
+    candidates : None, "all" or int, optional
+        Pairs of maps to merge: every pair ("all"), or each map with its
+        ``candidates`` most similar maps; default "all" up to
+        ``ALL_PAIRS_MAX_AGENTS`` maps, else ``CANDIDATE_NEIGHBOURS``.
+    n_jobs : int, default 1
+        Processes for the pairwise merges (joblib; -1: every core).
+    rng : None, int, SeedSequence or Generator
+        Randomness of randomised pairwise methods, one independent stream per
+        pair of maps (the same result for any ``n_jobs``).
+
+    Returns
+    -------
+    GroupMerge
+
+    Raises
+    ------
+    ValueError
+        On fewer than two maps, an invalid map (naming it), ``sigma``,
+        ``covs``, ``method``, ``tau``, ``reference``, ``placement``,
+        ``candidates`` or ``n_jobs``.
+    """
+    maps, sigmas, covs = _check_team(maps, sigma, covs)
+    get_method(method)
+    resolve_log_tau(tau)
+    if not (isinstance(reference, (int, np.integer)) and 0 <= reference < len(maps)):
+        raise ValueError(f"reference must be a map index in [0, {len(maps) - 1}], got {reference!r}")
+    if placement not in PLACEMENTS:
+        raise ValueError(f"placement must be one of {PLACEMENTS}, got {placement!r}")
+    if not (isinstance(n_jobs, (int, np.integer)) and n_jobs != 0 and n_jobs >= -1):
+        raise ValueError(f"n_jobs must be a positive integer or -1, got {n_jobs!r}")
+    pairs = candidate_pairs(maps, sigmas, candidates)
+    edges = pairwise_edges(maps, sigmas, covs, pairs, method, tau, n_jobs, check_rng(rng), sigma is not None)
+    variances = [np.broadcast_to(s**2 * np.eye(2), (len(m), 2, 2)) if c is None else c
+                 for m, s, c in zip(maps, sigmas, covs)]
+    return assemble(maps, variances, edges, int(reference), placement)
+
+
+def _check_team(maps, sigma, covs):
+    if isinstance(maps, np.ndarray) and maps.ndim == 3:
+        maps = list(maps)
+    if not isinstance(maps, (list, tuple)) or len(maps) < 2:
+        raise ValueError("maps must be a list of at least 2 (n_i, 2) arrays")
+    maps = [check_points(m, f"maps[{i}]") for i, m in enumerate(maps)]
+    N = len(maps)
+    if covs is None:
+        covs = [None] * N
+    elif not isinstance(covs, (list, tuple)) or len(covs) != N:
+        raise ValueError(f"covs must be a list of {N} arrays, one per map")
+    else:
+        covs = [check_covariances(c, len(m), f"covs[{i}]") for i, (m, c) in enumerate(zip(maps, covs))]
+    if sigma is None:
+        if any(c is None for c in covs):
+            raise ValueError("sigma is needed unless covs give every landmark's covariance")
+        # One σ per map for the stages that take one: its RMS per-coordinate standard deviation.
+        sigmas = [float(np.sqrt(np.mean(np.trace(c, axis1=1, axis2=2)) / 2)) for c in covs]
+    elif np.ndim(sigma) == 0:
+        sigmas = [check_sigma(sigma)] * N
+    elif np.shape(sigma) == (N,):
+        sigmas = [check_sigma(s, f"sigma[{i}]") for i, s in enumerate(sigma)]
+    else:
+        raise ValueError(f"sigma must be a number or one per map ({N},), got shape {np.shape(sigma)}")
+    return maps, np.array(sigmas), covs
+
+
+def candidate_pairs(maps, sigmas, candidates=None) -> np.ndarray:
+    """The pairs (i, j), i < j, of maps to merge (see ``merge_many``'s ``candidates``).
+
+    The score of a pair counts its triangles of nearly equal side lengths:
+    the Delaunay triangles of both maps, each as its sorted side lengths, within
+    ``SHAPE_GATE`` standard deviations (2 max σ per side) of one another,
+    capped at a tenth of the median side so that the count stays near linear
+    in the number of triangles at low SNR.
+    """
+    N = len(maps)
+    everything = np.array([(i, j) for i in range(N) for j in range(i + 1, N)], dtype=np.intp)
+    if candidates is None:
+        candidates = "all" if N <= ALL_PAIRS_MAX_AGENTS else CANDIDATE_NEIGHBOURS
+    if isinstance(candidates, str) and candidates == "all":
+        return everything
+    if not (isinstance(candidates, (int, np.integer)) and not isinstance(candidates, bool) and candidates >= 1):
+        raise ValueError(f"candidates must be None, 'all' or a positive integer, got {candidates!r}")
+    if candidates >= N - 1:
+        return everything
+    sides, owner = [], []
+    for i, m in enumerate(maps):
+        v = m[Delaunay(m).simplices]
+        sides.append(np.sort(np.linalg.norm(v - np.roll(v, 1, axis=1), axis=2), axis=1))
+        owner.append(np.full(len(v), i))
+    sides, owner = np.concatenate(sides), np.concatenate(owner)
+    gate = min(SHAPE_GATE * 2 * float(np.max(sigmas)) * np.sqrt(3), 0.1 * float(np.median(sides)))
+    close = cKDTree(sides).query_pairs(gate, output_type="ndarray")
+    a, b = owner[close[:, 0]], owner[close[:, 1]]
+    other = a != b
+    score = np.bincount(np.minimum(a, b)[other] * N + np.maximum(a, b)[other], minlength=N * N).reshape(N, N)
+    score = score + score.T
+    np.fill_diagonal(score, -1)
+    # Each map's best partners (ties to the lower index), then each pair once.
+    best = np.argsort(-score, axis=1, kind="stable")[:, :int(candidates)]
+    chosen = np.stack([np.repeat(np.arange(N), best.shape[1]), best.ravel()], axis=1)
+    return np.unique(np.sort(chosen, axis=1), axis=0)
+
+
+def pairwise_edges(maps, sigmas, covs, pairs, method="consensus", tau=DEFAULT_TAU, n_jobs=1, rng=None,
+                   sigma_given=True) -> list:
+    """``merge_maps`` of every listed pair of (valid) maps, as edges ("accepted" or "no match").
+
+    Maps of one σ and no covariances merge with that σ; otherwise with both maps'
+    covariances (σ² per coordinate where a map has none) and the RMS of their σ,
+    or, when ``sigma_given`` is False, ``merge_maps``'s own pooled σ.
+    """
+    seeds = [None] * len(pairs) if rng is None else rng.spawn(len(pairs))
+    jobs = []
+    for (i, j), seed in zip(pairs, seeds):
+        if covs[i] is None and covs[j] is None and sigmas[i] == sigmas[j]:
+            noise = (sigmas[i], None, None)
+        else:
+            own = [np.full(len(maps[k]), sigmas[k] ** 2) if covs[k] is None else covs[k] for k in (i, j)]
+            noise = (float(np.sqrt((sigmas[i] ** 2 + sigmas[j] ** 2) / 2)) if sigma_given else None, *own)
+        jobs.append((maps[i], maps[j], *noise, tau, method, seed))
+    if n_jobs == 1:
+        results = [_merge_pair(*job) for job in jobs]
+    else:
+        from joblib import Parallel, delayed
+
+        results = Parallel(n_jobs=n_jobs)(delayed(_merge_pair)(*job) for job in jobs)
+    return [Edge(int(i), int(j), *r) for (i, j), r in zip(pairs, results)]
+
+
+def _merge_pair(P, Q, sigma, cov_p, cov_q, tau, method, rng):
+    res = merge_maps(P, Q, sigma, tau=tau, method=method, cov_p=cov_p, cov_q=cov_q, rng=rng)
+    if not res.matched:
+        return NO_MATCH, float("nan"), np.full(2, np.nan), np.full((3, 3), np.nan), res.pairs
+    return ACCEPTED, float(res.theta), np.asarray(res.t, dtype=float), res.alignment.cov, res.pairs
+
+
+# --- Rigid motions of the plane as (θ, t_x, t_y) with covariances ------------------------------------------
+
+
+def compose(a, cov_a, b, cov_b):
+    """``a ∘ b`` (b first) and its first-order covariance, a and b independent."""
+    R = rotation(a[0])
+    out = np.concatenate([[a[0] + b[0]], R @ b[1:] + a[1:]])
+    Ja, Jb = np.eye(3), np.eye(3)
+    Ja[1:, 0] = R @ ROT90 @ b[1:]
+    Jb[1:, 1:] = R
+    return out, Ja @ cov_a @ Ja.T + Jb @ cov_b @ Jb.T
+
+
+def invert(a, cov_a):
+    """The inverse motion and its first-order covariance."""
+    Rt = rotation(-a[0])
+    J = -np.eye(3)
+    J[1:, 0] = Rt @ ROT90 @ a[1:]
+    J[1:, 1:] = -Rt
+    return np.concatenate([[-a[0]], -Rt @ a[1:]]), J @ cov_a @ J.T
+
+
+# --- Assembly -------------------------------------------------------------------------------------------------
+
+
+def assemble(maps, variances, edges, reference: int, placement: str) -> GroupMerge:
+    """Place the maps from their pairwise edges, build the tracks and fuse (valid inputs).
+
+    ``variances`` are each map's (n_i, 2, 2) landmark covariances. Returns the
+    ``GroupMerge``; the edges come back with their final status.
+    """
+    N = len(maps)
+    matched = [e for e in edges if e.matched]
+    if placement == "joint":
+        kept, refused = _consistent_edges(matched)
+        edges = [e if not e.matched else _with_status(e, INCONSISTENT if id(e) in refused else ACCEPTED)
+                 for e in edges]
+        tree = kept
+    else:
+        kept = matched
+        tree = _spanning_tree(matched, N) if placement == "tree" else _chain(matched, N)
+    reference, poses, pose_cov = _place(N, tree, reference)
+    placed = ~np.isnan(poses[:, 0])
+    tracks = _tracks(maps, variances, [e for e in kept if placed[e.i] and placed[e.j]], poses, placed)
+    if placement == "joint":
+        poses, pose_cov, merged, merged_cov = _joint_ml(maps, variances, tracks, poses, pose_cov, reference)
+    else:
+        merged, merged_cov = _fuse(maps, variances, tracks, poses, pose_cov)
+    return GroupMerge(reference=reference, placed=placed, theta=poses[:, 0], t=poses[:, 1:], frame_cov=pose_cov,
+                      tracks=tracks, merged=merged, merged_cov=merged_cov, edges=edges, placement=placement)
+
+
+def _with_status(e: Edge, status: str) -> Edge:
+    return Edge(e.i, e.j, status, e.theta, e.t, e.cov, e.pairs)
+
+
+def _edge_order(edges):
+    """Strongest first: most correspondences, then the lower map indices."""
+    return sorted(edges, key=lambda e: (-len(e.pairs), e.i, e.j))
+
+
+def _consistent_edges(edges):
+    """Greedy cycle-consistent edge set (module docstring, step 2): (kept edges, ids of refused ones)."""
+    gate = chdtri(3, CYCLE_P)
+    adjacency: dict[int, list] = {}
+    group: dict[int, int] = {}
+    kept, refused = [], set()
+    for e in _edge_order(edges):
+        gi, gj = group.get(e.i, e.i), group.get(e.j, e.j)
+        motion = np.concatenate([[e.theta], e.t])
+        if gi != gj:
+            for node, g in list(group.items()) + [(e.j, gj)]:
+                if g == gj:
+                    group[node] = gi
+            group.setdefault(e.i, gi)
+            adjacency.setdefault(e.i, []).append((e.j, motion, e.cov))
+            adjacency.setdefault(e.j, []).append((e.i, *invert(motion, e.cov)))
+            kept.append(e)
+            continue
+        path, path_cov = _tree_motion(adjacency, e.i, e.j)
+        r = np.concatenate([[wrap_angle(e.theta - path[0])], e.t - path[1:]])
+        if r @ np.linalg.solve(e.cov + path_cov, r) <= gate:
+            kept.append(e)
+        else:
+            refused.add(id(e))
+    return kept, refused
+
+
+def _tree_motion(adjacency, start: int, goal: int):
+    """The motion from map ``start`` to map ``goal`` composed along the tree path, with its covariance."""
+    previous = {start: None}
+    queue = deque([start])
+    while queue:
+        node = queue.popleft()
+        for nbr, motion, cov in adjacency.get(node, []):
+            if nbr not in previous:
+                previous[nbr] = (node, motion, cov)
+                queue.append(nbr)
+    steps = []
+    node = goal
+    while previous[node] is not None:
+        parent, motion, cov = previous[node]
+        steps.append((motion, cov))
+        node = parent
+    total, total_cov = np.zeros(3), np.zeros((3, 3))
+    for motion, cov in reversed(steps):
+        total, total_cov = compose(motion, cov, total, total_cov)
+    return total, total_cov
+
+
+def _spanning_tree(edges, N: int):
+    """The maximum spanning forest of the edges by number of correspondences (ties as scipy breaks them)."""
+    if not edges:
+        return []
+    i = np.array([e.i for e in edges])
+    j = np.array([e.j for e in edges])
+    w = np.array([len(e.pairs) for e in edges], dtype=float)
+    # minimum_spanning_tree of (big - w): every weight stays positive, the order reversed.
+    forest = minimum_spanning_tree(sparse.coo_matrix((w.max() + 1 - w, (i, j)), shape=(N, N))).tocoo()
+    chosen = set(zip(forest.row.tolist(), forest.col.tolist()))
+    return [e for e in edges if (e.i, e.j) in chosen]
+
+
+def _chain(edges, N: int):
+    """Sequential chaining: map k joins through its edge to the latest placed map that matched it."""
+    by_pair = {(e.i, e.j): e for e in edges}
+    placed, tree, waiting = [0], [], list(range(1, N))
+    progress = True
+    while waiting and progress:
+        progress = False
+        for k in list(waiting):
+            link = next((by_pair.get((min(p, k), max(p, k))) for p in reversed(placed)
+                         if (min(p, k), max(p, k)) in by_pair), None)
+            if link is not None:
+                tree.append(link)
+                placed.append(k)
+                waiting.remove(k)
+                progress = True
+    return tree
+
+
+def _place(N: int, tree, reference: int):
+    """Poses (N, 3) and covariances (N, 3, 3) of the maps the tree connects to the reference (NaN elsewhere)."""
+    adjacency: dict[int, list] = {}
+    for e in tree:
+        motion = np.concatenate([[e.theta], e.t])
+        adjacency.setdefault(e.i, []).append((e.j, motion, e.cov))
+        adjacency.setdefault(e.j, []).append((e.i, *invert(motion, e.cov)))
+    if reference not in adjacency and adjacency:
+        # The reference joined nobody: the lowest-numbered map of the largest group.
+        graph = sparse.coo_matrix((np.ones(len(tree)), ([e.i for e in tree], [e.j for e in tree])), shape=(N, N))
+        _, label = connected_components(graph, directed=False)
+        size = np.bincount(label)
+        reference = max(sorted(adjacency), key=lambda k: (size[label[k]], -k))
+    poses = np.full((N, 3), np.nan)
+    cov = np.full((N, 3, 3), np.nan)
+    poses[reference], cov[reference] = 0.0, 0.0
+    queue = deque([reference])
+    while queue:
+        node = queue.popleft()
+        for nbr, motion, c in adjacency.get(node, []):
+            if np.isnan(poses[nbr, 0]):
+                poses[nbr], cov[nbr] = compose(motion, c, poses[node], cov[node])
+                poses[nbr, 0] = wrap_angle(poses[nbr, 0])
+                queue.append(nbr)
+    return reference, poses, cov
+
+
+def _in_reference(poses, z, C, owner):
+    """Landmark estimates z (O, 2) of maps ``owner`` with covariances C brought into the reference frame."""
+    theta = poses[owner, 0]
+    x = rotate(-theta, (z - poses[owner, 1:])[:, None, :])[:, 0]
+    return x, covariance_in_p_frame(theta, C[:, None])[:, 0]
+
+
+def _tracks(maps, variances, edges, poses, placed) -> np.ndarray:
+    """Tracks (K, N) from the edges' correspondences (module docstring, step 3), ordered by their first landmark."""
+    N = len(maps)
+    sizes = np.array([len(m) for m in maps])
+    offsets = np.concatenate([[0], np.cumsum(sizes)])
+    owner = np.repeat(np.arange(N), sizes)
+    row = np.arange(offsets[-1]) - offsets[owner]
+    a = np.concatenate([offsets[e.i] + e.pairs[:, 0] for e in edges] + [np.empty(0, np.intp)]).astype(np.intp)
+    b = np.concatenate([offsets[e.j] + e.pairs[:, 1] for e in edges] + [np.empty(0, np.intp)]).astype(np.intp)
+    n_nodes = int(offsets[-1])
+    graph = sparse.coo_matrix((np.ones(len(a)), (a, b)), shape=(n_nodes, n_nodes))
+    _, label = connected_components(graph, directed=False)
+    # Components holding two landmarks of one map are rebuilt closest link first.
+    key = label * N + owner
+    uniq, count = np.unique(key, return_counts=True)
+    bad = np.unique(uniq[count > 1] // N)
+    if bad.size:
+        z, C = np.concatenate(maps), np.concatenate(variances)
+        link = np.flatnonzero(np.isin(label[a], bad))
+        x, Cx = _in_reference(np.nan_to_num(poses), z, C, owner)
+        d = x[a[link]] - x[b[link]]
+        d2 = np.einsum("ki,kij,kj->k", d, np.linalg.inv(Cx[a[link]] + Cx[b[link]]), d)
+        root = {}
+
+        def find(u):
+            while root.get(u, u) != u:
+                u = root[u]
+            return u
+
+        members = {}
+        for k in link[np.argsort(d2, kind="stable")]:
+            ra, rb = find(int(a[k])), find(int(b[k]))
+            ma, mb = members.get(ra, {int(owner[ra])}), members.get(rb, {int(owner[rb])})
+            if ra != rb and not ma & mb:
+                root[rb] = ra
+                members[ra] = ma | mb
+        nodes = np.flatnonzero(np.isin(label, bad))
+        label[nodes] = label.max() + 1 + np.array([find(int(u)) for u in nodes])
+    keep = placed[owner]
+    _, first, label = np.unique(label[keep], return_index=True, return_inverse=True)
+    # Renumber tracks in the order of their first landmark (map, row).
+    rank = np.empty(len(first), np.intp)
+    rank[np.argsort(first, kind="stable")] = np.arange(len(first))
+    tracks = np.full((len(first), N), -1, dtype=np.intp)
+    tracks[rank[label], owner[keep]] = row[keep]
+    return tracks
+
+
+def _observations(maps, variances, tracks):
+    """Track, map, estimate (O, 2) and covariance (O, 2, 2) of every landmark in ``tracks``."""
+    k, owner = np.nonzero(tracks >= 0)
+    offsets = np.concatenate([[0], np.cumsum([len(m) for m in maps])])
+    flat = offsets[owner] + tracks[k, owner]
+    return k, owner, np.concatenate(maps)[flat], np.concatenate(variances)[flat]
+
+
+def _weighted_means(k, x, W, K):
+    """Information-weighted mean (K, 2) and its covariance (K, 2, 2) of estimates x grouped by k."""
+    info = np.zeros((K, 2, 2))
+    np.add.at(info, k, W)
+    vec = np.zeros((K, 2))
+    np.add.at(vec, k, np.einsum("kij,kj->ki", W, x))
+    cov = np.linalg.inv(info)
+    return np.einsum("kij,kj->ki", cov, vec), cov
+
+
+def _fuse(maps, variances, tracks, poses, pose_cov):
+    """The baselines' fused map: each track's estimates in the reference frame, information-weighted,
+    every estimate's covariance including its frame's (``mapped_covariance``)."""
+    k, owner, z, C = _observations(maps, variances, tracks)
+    x = np.empty_like(z)
+    Cx = np.empty_like(C)
+    for i in np.unique(owner):
+        mine = owner == i
+        x[mine] = rotate(-poses[i, 0], z[mine] - poses[i, 1:])
+        Cx[mine] = mapped_covariance(x[mine], poses[i, 0], pose_cov[i], C[mine])
+    return _weighted_means(k, x, np.linalg.inv(Cx), len(tracks))
+
+
+def _joint_ml(maps, variances, tracks, poses, pose_cov, reference):
+    """Joint ML of the placed frames and the landmarks seen twice or more (module docstring, step 4).
+
+    Returns poses, their covariances, the fused map and its covariances.
+    """
+    N = len(maps)
+    k_all, owner_all, z_all, C_all = _observations(maps, variances, tracks)
+    seen = np.bincount(k_all, minlength=len(tracks))
+    multi = seen[k_all] >= 2
+    # Fused landmarks are numbered 0..K-1 among the tracks seen twice or more.
+    renum = np.cumsum(seen >= 2) - 1
+    k, owner, z, C = renum[k_all[multi]], owner_all[multi], z_all[multi], C_all[multi]
+    K = int((seen >= 2).sum())
+    free = np.array([i for i in range(N) if not np.isnan(poses[i, 0]) and i != reference], dtype=np.intp)
+    slot = np.full(N, -1)
+    slot[free] = np.arange(len(free))
+    poses = poses.copy()
+    W = np.linalg.inv(C)
+    X, _ = _weighted_means(k, *_back_projected(poses, z, C, owner), K)
+    scale = max(float(np.max(np.ptp(np.concatenate(maps), axis=0))), 1e-300)
+    for _ in range(GN_MAX_ITER):
+        S, rhs, B, BD, Dinv, gx = _normal_equations(poses, X, z, W, owner, k, slot, len(free), K)
+        dp = np.linalg.solve(S, rhs) if len(free) else np.zeros(0)
+        dx = np.einsum("kij,kj->ki", Dinv, gx - (B.T @ dp).reshape(K, 2))
+        poses[free] += dp.reshape(-1, 3)
+        X += dx
+        step = max(np.max(np.abs(dx), initial=0.0), np.max(np.abs(dp.reshape(-1, 3) * [scale, 1, 1]), initial=0.0))
+        if step <= GN_TOL * scale:
+            break
+    S, rhs, B, BD, Dinv, gx = _normal_equations(poses, X, z, W, owner, k, slot, len(free), K)
+    poses[free, 0] = wrap_angle(poses[free, 0])
+    S_inv = np.linalg.inv(S) if len(free) else np.zeros((0, 0))
+    pose_cov = pose_cov.copy()
+    pose_cov[free] = np.stack([S_inv[3 * s:3 * s + 3, 3 * s:3 * s + 3] for s in range(len(free))]) if len(free) \
+        else pose_cov[free]
+    X_cov = Dinv.copy()
+    for lo in range(0, K, 4096):
+        cols = slice(2 * lo, 2 * min(K, lo + 4096))
+        block = BD[:, cols].toarray().reshape(len(S), -1, 2)
+        X_cov[lo:lo + block.shape[1]] += np.einsum("pka,pq,qkb->kab", block, S_inv, block)
+    merged = np.empty((len(tracks), 2))
+    merged_cov = np.empty((len(tracks), 2, 2))
+    merged[seen >= 2], merged_cov[seen >= 2] = X, X_cov
+    single = ~multi
+    ks, os_, zs, Cs = k_all[single], owner_all[single], z_all[single], C_all[single]
+    for i in np.unique(os_):
+        mine = os_ == i
+        merged[ks[mine]] = rotate(-poses[i, 0], zs[mine] - poses[i, 1:])
+        merged_cov[ks[mine]] = mapped_covariance(merged[ks[mine]], poses[i, 0], pose_cov[i], Cs[mine])
+    return poses, pose_cov, merged, merged_cov
+
+
+def _back_projected(poses, z, C, owner):
+    x, Cx = _in_reference(poses, z, C, owner)
+    return x, np.linalg.inv(Cx)
+
+
+def _normal_equations(poses, X, z, W, owner, k, slot, P, K):
+    """Gauss-Newton's reduced system S δp = rhs (landmarks eliminated) at the current estimate, with
+    Huber weights; also B (3P, 2K) sparse, B D⁻¹, D⁻¹ (K, 2, 2) and the landmarks' gradient (K, 2)."""
+    theta = poses[owner, 0]
+    c, s = np.cos(theta), np.sin(theta)
+    R = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+    x = X[k]
+    r = z - (np.einsum("oij,oj->oi", R, x) + poses[owner, 1:])
+    norm = np.sqrt(np.einsum("oi,oij,oj->o", r, W, r))
+    Ww = W * np.where(norm > HUBER_K, HUBER_K / np.maximum(norm, 1e-300), 1.0)[:, None, None]
+    # Jacobian of R x + t in (θ, t): [R J x, I]; in x: R.
+    Jp = np.concatenate([np.einsum("oij,jk,ok->oi", R, ROT90, x)[:, :, None], np.broadcast_to(np.eye(2), R.shape)],
+                        axis=2)
+    WR = Ww @ R
+    D = np.zeros((K, 2, 2))
+    np.add.at(D, k, R.transpose(0, 2, 1) @ WR)
+    gx = np.zeros((K, 2))
+    np.add.at(gx, k, np.einsum("oji,oj->oi", WR, r))
+    Dinv = np.linalg.inv(D)
+    f = slot[owner] >= 0
+    sf = slot[owner][f]
+    A = np.zeros((P, 3, 3))
+    np.add.at(A, sf, Jp[f].transpose(0, 2, 1) @ Ww[f] @ Jp[f])
+    gp = np.zeros((P, 3))
+    np.add.at(gp, sf, np.einsum("oai,oab,ob->oi", Jp[f], Ww[f], r[f]))
+    vals = Jp[f].transpose(0, 2, 1) @ WR[f]  # (O_f, 3, 2)
+    rows = (3 * sf[:, None, None] + np.arange(3)[None, :, None]) + np.zeros((1, 1, 2), np.intp)
+    cols = (2 * k[f][:, None, None] + np.arange(2)[None, None, :]) + np.zeros((1, 3, 1), np.intp)
+    B = sparse.csr_matrix((vals.ravel(), (rows.ravel(), cols.ravel())), shape=(3 * P, 2 * K))
+    BD = B @ sparse.bsr_matrix((Dinv, np.arange(K), np.arange(K + 1)), shape=(2 * K, 2 * K))
+    S = -(BD @ B.T).toarray()
+    for p in range(P):
+        S[3 * p:3 * p + 3, 3 * p:3 * p + 3] += A[p]
+    rhs = gp.ravel() - BD @ gx.ravel()
+    return S, rhs, B, BD, Dinv, gx
