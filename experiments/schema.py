@@ -103,17 +103,8 @@ class Config:
 
 
 def register_configs() -> None:
-    """Store the schema, and register the sweeper plugin (``hydra/sweeper: preflight``)
-    by hand: Hydra's plugin scan does not see a package installed in editable mode."""
-    from hydra.core.plugins import Plugins
-
-    # After the scan, which re-runs Hydra's own plugin modules: the sweeper must
-    # subclass the BasicSweeper that scan leaves behind.
-    plugins = Plugins.instance()
-    from hydra_plugins.mapmerge_sweeper.preflight_sweeper import PreflightSweeper
-
+    """Store the schema in Hydra's ConfigStore (``base_config``, the first entry of conf/config.yaml's defaults)."""
     ConfigStore.instance().store(name="base_config", node=Config)
-    plugins.register(PreflightSweeper)
 
 
 def _fail(key: str, value, allowed: str):

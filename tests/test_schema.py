@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 from omegaconf import OmegaConf
 
-from experiments.preflight import expand_sweep
+from experiments.preflight import sweep_jobs
 from experiments.schema import CONF_DIR, ConfigError, validate
 from harness_utils import ROOT, cli, compose_config
 
@@ -35,7 +35,7 @@ def test_every_preset_composes_and_sweeps_valid_jobs(preset):
     cfg = compose_config([f"experiment={preset}"], hydra=True)
     assert cfg.name == preset and cfg.hydra.job.chdir is False
     params = [f"{k}={v}" for k, v in cfg.hydra.sweeper.params.items()]
-    jobs = expand_sweep(OverridesParser.create().parse_overrides(params))
+    jobs = sweep_jobs(OverridesParser.create().parse_overrides(params))
     assert len(jobs) >= 2
     for job in jobs[:: max(1, len(jobs) // 4)]:
         validate(compose_config([f"experiment={preset}", *job]))
@@ -46,7 +46,7 @@ def test_fig3_preset_is_the_papers_grid():
 
     cfg = compose_config(["experiment=fig3"], hydra=True)
     sweep = OverridesParser.create().parse_overrides([f"{k}={v}" for k, v in cfg.hydra.sweeper.params.items()])
-    cells = {tuple(float(o.split("=")[1]) for o in job) for job in expand_sweep(sweep)}
+    cells = {tuple(float(o.split("=")[1]) for o in job) for job in sweep_jobs(sweep)}
     assert cells == {(n, ov, snr) for n in (10, 20) for ov in (0.75, 0.5) for snr in range(0, 45, 5)}
     # 10,000 trials per curve as in the paper, on both cores: cells as parallel jobs.
     assert cfg.mc.n_trials == 10000
@@ -98,17 +98,19 @@ def test_validate_names_the_key(override, key):
 @pytest.mark.parametrize(
     "args, message",
     [
-        (["scenario.overlap=1.5"], "scenario.overlap=1.5 is invalid: must be in (0, 1]"),
-        (["-m", "scenario.n_landmarks=2,10"], "scenario.n_landmarks"),
-        (["-m", "experiment=smoke", "mc.n_jobs=0"], "mc.n_jobs"),
-        (["scenario.snrdb=30"], "scenario.snrdb is not a config key; did you mean scenario.snr_db?"),
-        (["+scenario.snrdb=30"], "scenario.snrdb is not a config key; did you mean scenario.snr_db?"),
-        (["matcher.tau=chi2:0.01"], "matcher.tau is not a config key; did you mean matcher.taus?"),
-        (["scenario.snr_db=loud"], "scenario.snr_db='loud' is invalid: expected a number"),
-        (["mc.n_trials=abc"], "mc.n_trials='abc' is invalid: expected an integer"),
-        (["mc.progress=maybe"], "mc.progress='maybe' is invalid: expected true or false"),
-        (["-m", "experiment=smoke", "mc.n_jobs=2"], "mc.n_jobs=2 is invalid: must be 1 under hydra/launcher=joblib"),
-        (["-m", "scenario.snr_db=10,nope"], "scenario.snr_db='nope' is invalid: expected a number"),
+        (["scenario.overlap=1.5"], ["scenario.overlap=1.5 is invalid: must be in (0, 1]"]),
+        (["-m", "scenario.n_landmarks=2,10"], ["scenario.n_landmarks"]),
+        (["-m", "scenario.overlap=0.5,1.5"], ["scenario.overlap=1.5 is invalid"]),
+        (["-m", "experiment=smoke", "mc.n_jobs=0"], ["mc.n_jobs"]),
+        (["scenario.snrdb=30"], ["scenario.snrdb is not a config key; did you mean scenario.snr_db?"]),
+        (["+scenario.snrdb=30"], ["scenario.snrdb is not a config key; did you mean scenario.snr_db?"]),
+        (["matcher.tau=chi2:0.01"], ["matcher.tau is not a config key; did you mean matcher.taus?"]),
+        (["scenario.snr_db=loud"], ["scenario.snr_db=loud", "could not be converted to Float"]),
+        (["mc.n_trials=abc"], ["mc.n_trials=abc", "could not be converted to Integer"]),
+        (["mc.progress=maybe"], ["mc.progress=maybe", "not a valid bool"]),
+        (["-m", "experiment=smoke", "mc.n_jobs=2"], ["mc.n_jobs=2 is invalid: must be 1 under hydra/launcher=joblib"]),
+        (["-m", "scenario.snr_db=10,nope"], ["scenario.snr_db=nope", "could not be converted to Float"]),
+        (["scenario=lidar"], ["scenario/lidar", "paper", "small"]),
     ],
 )
 def test_invalid_overrides_fail_fast_and_write_nothing(tmp_path, args, message):
@@ -117,29 +119,18 @@ def test_invalid_overrides_fail_fast_and_write_nothing(tmp_path, args, message):
     proc = cli(args, tmp_path)
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("error:") and message in lines[0], proc.stderr
+    assert len(lines) == 1 and lines[0].startswith("error:") and all(m in lines[0] for m in message), proc.stderr
     assert list(tmp_path.iterdir()) == []
 
 
-def test_the_sweeper_skips_only_jobs_the_preflight_validated():
+def test_sweep_jobs_expand_as_hydra_launches_them():
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
-    from experiments.preflight import preflight
-    from hydra_plugins.mapmerge_sweeper.preflight_sweeper import job_key, was_validated
-
-    # However a job's overrides are spelt or ordered; hydra.* settings are not part of a job.
-    assert job_key(["mc.progress=false", "scenario.snr_db=5"]) == job_key(
-        ["scenario.snr_db=5", "mc.progress=False", "hydra.verbose=true"])
-    assert job_key(["scenario.snr_db=5"]) != job_key(["scenario.snr_db=5.0"])  # other run directories
-    args = ["experiment=smoke", "scenario.snr_db=7,9", "mc.progress=false"]
-    cfg = compose_config(["experiment=smoke"], hydra=True)
-    params = [f"{k}={v}" for k, v in cfg.hydra.sweeper.params.items()]
-    # The batch as Hydra's sweeper forms it (values re-spelt, e.g. mc.progress=False).
-    batch = expand_sweep(OverridesParser.create().parse_overrides(params + args))
-    assert not was_validated(batch)
-    preflight(["-m", *args])
-    assert was_validated(batch)
-    assert not was_validated([[*batch[0], "scenario.overlap=0.5"]])
+    # The preset's params first, then the command line's: a later value of a key replaces an earlier one.
+    parsed = OverridesParser.create().parse_overrides(
+        ["scenario.snr_db=20,40", "mc.progress=false", "scenario.snr_db=range(0,10,5)", "matcher.method=paper,groth"])
+    assert sweep_jobs(parsed) == [[f"scenario.snr_db={s}", "mc.progress=False", f"matcher.method={m}"]
+                                  for s in (0, 5) for m in ("paper", "groth")]
 
 
 def test_a_sweep_not_preflighted_is_still_checked_before_any_job_runs(tmp_path):
@@ -150,3 +141,14 @@ def test_a_sweep_not_preflighted_is_still_checked_before_any_job_runs(tmp_path):
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode != 0 and "loud" in proc.stderr
     assert not list(tmp_path.rglob("trials.parquet"))
+
+
+def test_a_launcher_whose_extra_is_missing_is_named_in_one_line(tmp_path):
+    import importlib.util
+
+    if importlib.util.find_spec("hydra_plugins.hydra_submitit_launcher") is not None:
+        pytest.skip("the submitit launcher is installed")
+    proc = cli(["-m", "hydra/launcher=submitit_slurm", "mc.n_trials=2"], tmp_path)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1 and "pip install 'mapmerge[launchers]'" in lines[0], proc.stderr
+    assert list(tmp_path.iterdir()) == []
