@@ -43,6 +43,12 @@ at a far higher SNR. Each hypothesis is refined on the thinned maps first
 the test uses every landmark (its quadrature on at most
 ``exhaustive.QUAD_MAX_CENTRES`` landmark discs). 10⁴-landmark maps at
 15 dB merge in about 3 s.
+
+The vote grid spans both maps' reach, so maps of very different extents
+(one in millimetres, the other in metres) would need a grid of any size:
+it has at most ``MAX_VOTE_CELLS`` cells per axis (wider cells beyond) and
+is counted ``VOTE_BUDGET`` cells at a time, so the search's memory and time
+depend on the landmark counts alone, never on the coordinates.
 """
 
 from __future__ import annotations
@@ -91,6 +97,14 @@ THIN_PREFILTER = 16
 COARSE_SPACING = 0.3
 #: Largest rotation grid (a finer step than this needs is not searched).
 MAX_ROTATIONS = 1440
+#: Largest translation vote grid, in cells per axis. The grid spans both maps' reach, so two maps in
+#: different units (one 1,000x the other's extent) would need a grid a million times a same-unit pair's;
+#: beyond this the cells are widened instead (cost then depends on the landmark counts alone). Same-unit
+#: maps of similar extent need a few hundred (about 160 for two 300-landmark maps of one area).
+MAX_VOTE_CELLS = 2048
+#: Vote cells (rotations x cells per rotation) counted at once: bounds the vote's memory (8 bytes a cell,
+#: a few arrays of it) whatever the grid.
+VOTE_BUDGET = 2**23
 
 
 def _thinned(X: np.ndarray, m: int) -> np.ndarray:
@@ -125,16 +139,20 @@ def _hypotheses(Ps: np.ndarray, Qs: np.ndarray, r: float, hull):
     """
     reach = np.sqrt(np.max(np.sum((Ps - Ps.mean(axis=0)) ** 2, axis=1)))
     spacing = np.sqrt(hull.volume / len(Ps))
-    cell = max(r, COARSE_SPACING * spacing)
-    n_theta = int(np.clip(np.ceil(2 * np.pi * reach / cell), 8, MAX_ROTATIONS))
-    thetas = 2 * np.pi * np.arange(n_theta) / n_theta
     # Translations are voted relative to q's centroid minus rotated p's centroid.
     pc, qc = Ps - Ps.mean(axis=0), Qs - Qs.mean(axis=0)
     half = np.sqrt(np.max(np.sum(pc**2, axis=1))) + np.sqrt(np.max(np.sum(qc**2, axis=1)))
+    # At most MAX_VOTE_CELLS cells per axis (maps of very different extents): ``2 half / cell`` then stays
+    # below MAX_VOTE_CELLS - 1 whatever its rounding.
+    cell = max(r, COARSE_SPACING * spacing, 2 * half / (MAX_VOTE_CELLS - 2))
+    n_theta = int(np.clip(np.ceil(2 * np.pi * reach / cell), 8, MAX_ROTATIONS))
+    thetas = 2 * np.pi * np.arange(n_theta) / n_theta
     n_cells = int(np.ceil(2 * half / cell)) + 1
     best_count = np.zeros(n_theta, dtype=np.int64)
     best_t = np.zeros((n_theta, 2))
-    chunk = max(1, 4_000_000 // (len(pc) * len(qc)))
+    # Rotations per chunk: about 4·10⁶ votes, and at most VOTE_BUDGET grid cells (every rotation is voted
+    # on its own, so the chunking changes no result).
+    chunk = max(1, min(4_000_000 // (len(pc) * len(qc)), VOTE_BUDGET // n_cells**2))
     for a in range(0, n_theta, chunk):
         th = thetas[a:a + chunk]
         c, s = np.cos(th), np.sin(th)
@@ -160,7 +178,8 @@ def _hypotheses(Ps: np.ndarray, Qs: np.ndarray, r: float, hull):
     # Back to the maps' own frames: q = R p + t with t = qc_mean + t_centred - R pc_mean.
     (mx, my), c, s = Ps.mean(axis=0), np.cos(theta), np.sin(theta)
     t = Qs.mean(axis=0) + best_t[order] - np.stack([c * mx - s * my, s * mx + c * my], axis=1)
-    n_hypotheses = np.ceil(2 * np.pi * reach / r) * np.ceil(2 * half / r) ** 2
+    with np.errstate(over="ignore"):  # inf for maps 1e100 noise widths across: then no NFA is small
+        n_hypotheses = np.ceil(2 * np.pi * reach / r) * np.ceil(2 * half / r) ** 2
     return theta, t, cell, float(n_hypotheses)
 
 

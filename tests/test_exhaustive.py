@@ -166,3 +166,12 @@ def test_detector_refuses_bad_arguments_in_one_line_naming_them(tmp_path, argv, 
     with pytest.raises(SystemExit, match=re.escape(message)):
         detector.main([*argv, "--trials", "8", "--out", str(tmp_path / "out")])
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("scale, sigma", [(1.0, 1e-9), (1e3, None)])
+def test_detector_refuses_a_grid_beyond_its_budget(scale, sigma):
+    """The grid is set by the maps' extents in units of σ: a tiny σ or maps in different units would ask
+    for any size; beyond ``MAX_GRID_SIDE`` cells per axis the detector refuses in one line."""
+    sc = mm.simulate.make_pair(20, 0.75, 10, rng=1)
+    with pytest.raises(ValueError, match=r"grid cells .* per axis .* sigma and both maps in the same units"):
+        exhaustive.max_log_lr(sc.p, sc.q * scale, sigma or sc.sigma, 0.9, 1.0)

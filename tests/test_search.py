@@ -134,3 +134,20 @@ def test_hypotheses_refined_together_give_the_alignments_refined_one_at_a_time()
                     assert al.theta == other.theta and np.array_equal(al.t, other.t) and al.cost == other.cost
                     assert np.array_equal(al.mu, other.mu)
     assert checked >= 20 and died >= 6
+
+
+@pytest.mark.parametrize("scale", [1e3, 1e9, 1e48, 1e-9])
+def test_maps_in_different_units_cost_what_same_unit_maps_cost(scale):
+    """q in other units (x 1e3 ... 1e48) once asked for a vote grid of 10¹¹ cells or overflowed: the grid
+    is now coarsened to ``MAX_VOTE_CELLS`` per axis and counted ``VOTE_BUDGET`` cells at a time."""
+    import tracemalloc
+
+    sc = mm.simulate.make_pair(45, 0.75, 30, rng=0)
+    tracemalloc.start()
+    try:
+        pairs, _, nfa = search.search_pairs(sc.p, sc.q * scale, 0.3)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert len(pairs) == 0 and not nfa <= search.SEARCH_NFA
+    assert peak < 400 * 2**20, f"{peak / 2**20:.0f} MiB"
