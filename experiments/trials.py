@@ -15,7 +15,6 @@ cell key hashes the *scenario* only, so every matcher sees the same maps.
 
 from __future__ import annotations
 
-import ctypes
 import functools
 import hashlib
 import json
@@ -133,34 +132,6 @@ def _slice_size(scenario: dict) -> int:
     return max(1, MAX_PAIRS // max(2 * n - 5, 1) ** 2)
 
 
-#: glibc ``mallopt`` parameters (malloc.h) and the values the trial
-#: processes fix them at: the largest mmap threshold glibc allows, and the
-#: trim threshold its own adaptive rule sets beside it (twice that).
-M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
-MMAP_THRESHOLD_BYTES = 32 << 20
-TRIM_THRESHOLD_BYTES = 2 * MMAP_THRESHOLD_BYTES
-
-
-@functools.cache
-def keep_freed_memory() -> bool:
-    """Let this process reuse the arrays it frees instead of giving them back to the OS (glibc only).
-
-    Every stage of a chunk allocates and frees arrays of 0.1 to 32 MB.
-    glibc's malloc serves such sizes by mmap or trims its heap after the
-    free, so the next stage's arrays fault their pages in again, zeroed by
-    the kernel: a 20-landmark trial paid about 7 page faults, 6 % of its
-    time. With the thresholds fixed above those sizes, a process keeps up
-    to ``TRIM_THRESHOLD_BYTES`` of freed memory for reuse. Results do not
-    depend on it. Returns whether the setting took (False off glibc).
-    """
-    try:
-        mallopt = ctypes.CDLL(None).mallopt
-    except (AttributeError, OSError, TypeError):  # no mallopt (macOS), or no dlopen(NULL) (Windows)
-        return False
-    return bool(mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)) and bool(mallopt(M_TRIM_THRESHOLD,
-                                                                               TRIM_THRESHOLD_BYTES))
-
-
 def run_chunk(root_seed: int, scenario: dict, matcher: dict, start: int, stop: int):
     """Trials ``start..stop-1`` of a cell as (trials, pairs) DataFrames.
 
@@ -169,7 +140,6 @@ def run_chunk(root_seed: int, scenario: dict, matcher: dict, start: int, stop: i
     trial of the slice of trials run together). ``pairs``: one row per
     tentative triangle pair of the triangle-LP methods (τ-independent).
     """
-    keep_freed_memory()
     per_slice = _slice_size(scenario)
     parts = [_run_slice(root_seed, scenario, matcher, np.arange(a, min(a + per_slice, stop)))
              for a in range(start, stop, per_slice)]

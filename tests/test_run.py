@@ -85,37 +85,6 @@ def test_a_worker_whose_arithmetic_differs_from_the_drivers_refuses_its_chunk():
         _chunk_job(*args, "a driver with AVX-512 kernels")
 
 
-#: Page faults of 5 batched merges of 200 20-landmark pairs, after a first one, in a fresh process.
-_FAULTS = """
-import sys
-import mapmerge as mm
-from experiments.trials import keep_freed_memory
-if sys.argv[1] == "keep" and not keep_freed_memory():
-    print("unsupported")
-    raise SystemExit
-import resource
-batch = mm.simulate.make_pairs(20, 0.75, 20.0, list(range(200)))
-mm.merge_batch(batch.p, batch.q, batch.sigma, method="paper")
-before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
-for _ in range(5):
-    mm.merge_batch(batch.p, batch.q, batch.sigma, method="paper")
-print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
-"""
-
-
-def test_trial_processes_reuse_freed_arrays():
-    """With ``keep_freed_memory`` repeated batches stop faulting pages in (about 5,800 -> 4 here)."""
-    def faults(mode):
-        out = subprocess.run([sys.executable, "-c", _FAULTS, mode], cwd=ROOT, capture_output=True, text=True,
-                             check=True, env={**os.environ, "PYTHONPATH": str(ROOT)}).stdout.split()
-        return out[-1]
-
-    kept = faults("keep")
-    if kept == "unsupported":
-        pytest.skip("no glibc mallopt on this platform")
-    assert int(kept) * 10 < int(faults("default"))
-
-
 #: A cell slow enough (consensus, ~20 ms a trial, 12 chunks) that stopping it after 3 chunks has seconds of margin.
 SLOW_CELL = ["scenario.snr_db=30", "matcher.method=consensus", "matcher.taus=[chi2:0.01]", "mc.n_trials=60",
              "mc.chunk_size=5", "mc.n_jobs=1", "mc.progress=false"]
