@@ -76,7 +76,7 @@ CANDIDATE_NEIGHBOURS = 6
 SHAPE_GATE = 3.0
 #: Gauss-Newton: most iterations, and the step (relative to the maps' extent) that ends them.
 GN_MAX_ITER = 50
-GN_TOL = 1e-12
+GN_TOL = 1e-10
 #: How the frames are found: see the module docstring.
 PLACEMENTS = ("joint", "tree", "chain")
 #: An edge's status after assembly.
@@ -581,43 +581,35 @@ def _joint_ml(maps, variances, tracks, poses, pose_cov, reference):
     seen = np.bincount(k_all, minlength=len(tracks))
     multi = seen[k_all] >= 2
     # Fused landmarks are numbered 0..K-1 among the tracks seen twice or more.
-    renum = np.cumsum(seen >= 2) - 1
-    k, owner, z, C = renum[k_all[multi]], owner_all[multi], z_all[multi], C_all[multi]
+    k = (np.cumsum(seen >= 2) - 1)[k_all[multi]]
+    owner, z, C = owner_all[multi], z_all[multi], C_all[multi]
     K = int((seen >= 2).sum())
     free = np.array([i for i in range(N) if not np.isnan(poses[i, 0]) and i != reference], dtype=np.intp)
     slot = np.full(N, -1)
     slot[free] = np.arange(len(free))
+    system = _System(k, slot[owner], len(free), K)
     poses = poses.copy()
     W = np.linalg.inv(C)
     X, _ = _weighted_means(k, *_back_projected(poses, z, C, owner), K)
     scale = max(float(np.max(np.ptp(np.concatenate(maps), axis=0))), 1e-300)
     for _ in range(GN_MAX_ITER):
-        S, rhs, B, BD, Dinv, gx = _normal_equations(poses, X, z, W, owner, k, slot, len(free), K)
-        dp = np.linalg.solve(S, rhs) if len(free) else np.zeros(0)
-        dx = np.einsum("kij,kj->ki", Dinv, gx - (B.T @ dp).reshape(K, 2))
-        poses[free] += dp.reshape(-1, 3)
+        S, dp, dx = system.step(poses, X, z, W, owner)
+        poses[free] += dp
         X += dx
-        step = max(np.max(np.abs(dx), initial=0.0), np.max(np.abs(dp.reshape(-1, 3) * [scale, 1, 1]), initial=0.0))
-        if step <= GN_TOL * scale:
+        if max(np.max(np.abs(dx), initial=0.0), np.max(np.abs(dp * [scale, 1, 1]), initial=0.0)) <= GN_TOL * scale:
             break
-    S, rhs, B, BD, Dinv, gx = _normal_equations(poses, X, z, W, owner, k, slot, len(free), K)
+    S, _, _ = system.step(poses, X, z, W, owner)
     poses[free, 0] = wrap_angle(poses[free, 0])
-    S_inv = np.linalg.inv(S) if len(free) else np.zeros((0, 0))
+    S_inv = np.linalg.inv(S)
     pose_cov = pose_cov.copy()
-    pose_cov[free] = np.stack([S_inv[3 * s:3 * s + 3, 3 * s:3 * s + 3] for s in range(len(free))]) if len(free) \
-        else pose_cov[free]
-    X_cov = Dinv.copy()
-    for lo in range(0, K, 4096):
-        cols = slice(2 * lo, 2 * min(K, lo + 4096))
-        block = BD[:, cols].toarray().reshape(len(S), -1, 2)
-        X_cov[lo:lo + block.shape[1]] += np.einsum("pka,pq,qkb->kab", block, S_inv, block)
+    pose_cov[free] = S_inv.reshape(len(free), 3, len(free), 3)[np.arange(len(free)), :, np.arange(len(free))]
     merged = np.empty((len(tracks), 2))
     merged_cov = np.empty((len(tracks), 2, 2))
-    merged[seen >= 2], merged_cov[seen >= 2] = X, X_cov
+    merged[seen >= 2], merged_cov[seen >= 2] = X, system.landmark_covariances(S_inv)
     single = ~multi
-    ks, os_, zs, Cs = k_all[single], owner_all[single], z_all[single], C_all[single]
-    for i in np.unique(os_):
-        mine = os_ == i
+    ks, own, zs, Cs = k_all[single], owner_all[single], z_all[single], C_all[single]
+    for i in np.unique(own):
+        mine = own == i
         merged[ks[mine]] = rotate(-poses[i, 0], zs[mine] - poses[i, 1:])
         merged_cov[ks[mine]] = mapped_covariance(merged[ks[mine]], poses[i, 0], pose_cov[i], Cs[mine])
     return poses, pose_cov, merged, merged_cov
@@ -628,38 +620,70 @@ def _back_projected(poses, z, C, owner):
     return x, np.linalg.inv(Cx)
 
 
-def _normal_equations(poses, X, z, W, owner, k, slot, P, K):
-    """Gauss-Newton's reduced system S δp = rhs (landmarks eliminated) at the current estimate, with
-    Huber weights; also B (3P, 2K) sparse, B D⁻¹, D⁻¹ (K, 2, 2) and the landmarks' gradient (K, 2)."""
-    theta = poses[owner, 0]
-    c, s = np.cos(theta), np.sin(theta)
-    R = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
-    x = X[k]
-    r = z - (np.einsum("oij,oj->oi", R, x) + poses[owner, 1:])
-    norm = np.sqrt(np.einsum("oi,oij,oj->o", r, W, r))
-    Ww = W * np.where(norm > HUBER_K, HUBER_K / np.maximum(norm, 1e-300), 1.0)[:, None, None]
-    # Jacobian of R x + t in (θ, t): [R J x, I]; in x: R.
-    Jp = np.concatenate([np.einsum("oij,jk,ok->oi", R, ROT90, x)[:, :, None], np.broadcast_to(np.eye(2), R.shape)],
-                        axis=2)
-    WR = Ww @ R
-    D = np.zeros((K, 2, 2))
-    np.add.at(D, k, R.transpose(0, 2, 1) @ WR)
-    gx = np.zeros((K, 2))
-    np.add.at(gx, k, np.einsum("oji,oj->oi", WR, r))
-    Dinv = np.linalg.inv(D)
-    f = slot[owner] >= 0
-    sf = slot[owner][f]
-    A = np.zeros((P, 3, 3))
-    np.add.at(A, sf, Jp[f].transpose(0, 2, 1) @ Ww[f] @ Jp[f])
-    gp = np.zeros((P, 3))
-    np.add.at(gp, sf, np.einsum("oai,oab,ob->oi", Jp[f], Ww[f], r[f]))
-    vals = Jp[f].transpose(0, 2, 1) @ WR[f]  # (O_f, 3, 2)
-    rows = (3 * sf[:, None, None] + np.arange(3)[None, :, None]) + np.zeros((1, 1, 2), np.intp)
-    cols = (2 * k[f][:, None, None] + np.arange(2)[None, None, :]) + np.zeros((1, 3, 1), np.intp)
-    B = sparse.csr_matrix((vals.ravel(), (rows.ravel(), cols.ravel())), shape=(3 * P, 2 * K))
-    BD = B @ sparse.bsr_matrix((Dinv, np.arange(K), np.arange(K + 1)), shape=(2 * K, 2 * K))
-    S = -(BD @ B.T).toarray()
-    for p in range(P):
-        S[3 * p:3 * p + 3, 3 * p:3 * p + 3] += A[p]
-    rhs = gp.ravel() - BD @ gx.ravel()
-    return S, rhs, B, BD, Dinv, gx
+class _System:
+    """Gauss-Newton's normal equations of the joint ML with the landmarks eliminated.
+
+    Observation o (landmark k_o seen by the map in frame slot s_o, -1 for the
+    reference) couples one frame and one landmark, so the Schur complement
+    ``S = A - B D⁻¹ Bᵀ`` of the landmarks' 2x2 blocks D has a 3x3 block for
+    every two observations of one landmark: those pairs are listed once.
+    """
+
+    def __init__(self, k, s, P, K):
+        self.k, self.s, self.P, self.K = k, s, P, K
+        self.free = np.flatnonzero(s >= 0)
+        # Every ordered pair of free observations of one landmark.
+        obs = self.free[np.argsort(k[self.free], kind="stable")]
+        count = np.bincount(k[obs], minlength=K)
+        start = np.cumsum(count) - count
+        reps = count[k[obs]]
+        first = np.repeat(obs, reps)
+        within = np.arange(reps.sum()) - np.repeat(np.cumsum(reps) - reps, reps)
+        self.pair = (first, obs[start[k[first]] + within])
+
+    def step(self, poses, X, z, W, owner):
+        """S (3P, 3P) at the current estimate, and the Gauss-Newton step (δ frames (P, 3), δ landmarks (K, 2))."""
+        k, s, P, K, f = self.k, self.s, self.P, self.K, self.free
+        theta = poses[owner, 0]
+        c, sn = np.cos(theta), np.sin(theta)
+        R = np.stack([np.stack([c, -sn], -1), np.stack([sn, c], -1)], -2)
+        x = X[k]
+        r = z - (np.einsum("oij,oj->oi", R, x) + poses[owner, 1:])
+        norm = np.sqrt(np.einsum("oi,oij,oj->o", r, W, r))
+        Ww = W * np.where(norm > HUBER_K, HUBER_K / np.maximum(norm, 1e-300), 1.0)[:, None, None]
+        WR = Ww @ R
+        D = np.zeros((K, 2, 2))
+        np.add.at(D, k, R.transpose(0, 2, 1) @ WR)
+        gx = np.zeros((K, 2))
+        np.add.at(gx, k, np.einsum("oji,oj->oi", WR, r))
+        self.Dinv = Dinv = np.linalg.inv(D)
+        # Jacobian of R x + t in (θ, t): [R J x, I]; in x: R.
+        Jp = np.concatenate([np.einsum("oij,jk,ok->oi", R[f], ROT90, x[f])[:, :, None],
+                             np.broadcast_to(np.eye(2), (len(f), 2, 2))], axis=2)
+        self.Bo = Bo = Jp.transpose(0, 2, 1) @ WR[f]  # (O_f, 3, 2): the frame-landmark blocks
+        self.Y = Y = Bo @ Dinv[k[f]]  # B D⁻¹, per observation
+        S = np.zeros((P, P, 3, 3))
+        np.add.at(S, (s[f], s[f]), Jp.transpose(0, 2, 1) @ Ww[f] @ Jp)
+        where = np.empty(len(z), np.intp)
+        where[f] = np.arange(len(f))
+        a, b = where[self.pair[0]], where[self.pair[1]]
+        np.add.at(S, (s[self.pair[0]], s[self.pair[1]]), -(Y[a] @ Bo[b].transpose(0, 2, 1)))
+        rhs = np.zeros((P, 3))
+        np.add.at(rhs, s[f], np.einsum("oai,oab,ob->oi", Jp, Ww[f], r[f]) - np.einsum("oij,oj->oi", Y, gx[k[f]]))
+        S = S.transpose(0, 2, 1, 3).reshape(3 * P, 3 * P)
+        dp = np.linalg.solve(S, rhs.ravel()).reshape(P, 3) if P else np.zeros((0, 3))
+        back = np.zeros((K, 2))
+        np.add.at(back, k[f], np.einsum("oji,oj->oi", Bo, dp[s[f]]))
+        return S, dp, np.einsum("kij,kj->ki", Dinv, gx - back)
+
+    def landmark_covariances(self, S_inv):
+        """Each landmark's covariance D⁻¹ + (B D⁻¹)ᵀ S⁻¹ (B D⁻¹), from the last ``step``'s linearisation."""
+        k, s, f = self.k, self.s, self.free
+        blocks = S_inv.reshape(self.P, 3, self.P, 3).transpose(0, 2, 1, 3)
+        where = np.empty(len(k), np.intp)
+        where[f] = np.arange(len(f))
+        a, b = where[self.pair[0]], where[self.pair[1]]
+        cov = self.Dinv.copy()
+        np.add.at(cov, k[self.pair[0]], self.Y[a].transpose(0, 2, 1) @ blocks[s[self.pair[0]], s[self.pair[1]]]
+                  @ self.Y[b])
+        return cov
