@@ -35,10 +35,11 @@ def test_astroalign_baseline():
 
 
 def test_astroalign_baseline_is_reproducible():
-    astroalign = pytest.importorskip("astroalign")
+    pytest.importorskip("astroalign")
+    default_rng = np.random.default_rng
     # At 20 dB its RANSAC's random draws decide the answer; they are seeded
-    # from the maps, so the same maps give the same merge, and astroalign's
-    # own module is left as it was.
+    # from the maps, so the same maps give the same merge, and numpy's
+    # default_rng is left as it was.
     sc = mm.simulate.make_pair(60, 0.75, 20, rng=0)
     a, b = (mm.merge_maps(sc.p, sc.q, sc.sigma, method="astroalign") for _ in range(2))
     assert np.array_equal(a.pairs, b.pairs) and np.array_equal(a.t, b.t, equal_nan=True)
@@ -46,11 +47,12 @@ def test_astroalign_baseline_is_reproducible():
     sc = mm.simulate.make_pair(60, 0.75, 30, rng=0)
     c, d = (mm.merge_maps(sc.p, sc.q, sc.sigma, method="astroalign", rng=7) for _ in range(2))
     assert np.array_equal(c.pairs, d.pairs) and len(c.pairs) > 10
-    assert astroalign._np is np
+    assert np.random.default_rng is default_rng
 
 
 def test_astroalign_calls_from_two_threads_each_draw_from_their_own_generator(monkeypatch):
     astroalign = pytest.importorskip("astroalign")
+    default_rng = np.random.default_rng
     from mapmerge.baselines.astroalign import astroalign_pairs
 
     sc = mm.simulate.make_pair(30, 0.75, 30, rng=0)
@@ -60,14 +62,20 @@ def test_astroalign_calls_from_two_threads_each_draw_from_their_own_generator(mo
 
     def find_transform(*args, **kwargs):
         # The first call waits inside for the second (0.5 s at most): it can get there only if the
-        # two calls' swaps of astroalign's numpy overlap.
+        # two calls' replacements of numpy's default_rng overlap.
         name = threading.current_thread().name
         if name == "first":
             first_inside.set()
             second_inside.wait(0.5)
         else:
             second_inside.set()
-        seen[name] = astroalign._np.random.default_rng()
+        seen[name] = np.random.default_rng()
+        # A thread outside the call draws fresh entropy, as numpy does.
+        outside = []
+        helper = threading.Thread(target=lambda: outside.append(np.random.default_rng()))
+        helper.start()
+        helper.join()
+        seen[name + " outside"] = outside[0]
         return real(*args, **kwargs)
 
     monkeypatch.setattr(astroalign, "find_transform", find_transform)
@@ -79,7 +87,8 @@ def test_astroalign_calls_from_two_threads_each_draw_from_their_own_generator(mo
     for thread in threads.values():
         thread.join()
     assert seen["first"] is gens["first"] and seen["second"] is gens["second"]
-    assert astroalign._np is np
+    assert not {id(seen["first outside"]), id(seen["second outside"])} & {id(g) for g in gens.values()}
+    assert np.random.default_rng is default_rng
 
 
 def test_groth_on_a_batch_equals_each_map_pair_alone():

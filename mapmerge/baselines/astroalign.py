@@ -7,12 +7,13 @@ that is reported as "no match"; a wrong transform is kept and shows up in
 the errors.
 
 Its RANSAC shuffles candidates with ``numpy.random.default_rng()`` and
-offers no seed argument. So that the baseline is reproducible, the
-``default_rng`` astroalign sees returns the caller's generator for the
-duration of the call (and only then); nothing global is seeded. The swap is
-seen by the whole process, so calls from several threads take turns. Without a
-generator, one seeded by the two maps' bytes is used, so the same maps give
-the same answer.
+``find_transform`` takes no seed (astroalign 2.6). So that the baseline is
+reproducible, ``numpy.random.default_rng`` called without a seed from the
+thread running the call returns the caller's generator for the duration of
+the call (and only then); any other call, and any call from another thread,
+gets numpy's own ``default_rng``, and nothing global is seeded. Calls from
+several threads take turns. Without a generator, one seeded by the two
+maps' bytes is used, so the same maps give the same answer.
 """
 
 from __future__ import annotations
@@ -43,7 +44,7 @@ def astroalign_pairs(P: np.ndarray, Q: np.ndarray, sigma: float, rng: np.random.
     astroalign = _module()
     scale = astroalign.PIXEL_TOL / (ASTROALIGN_TOL_SIGMAS * sigma)
     try:
-        with _ransac_rng(astroalign, rng):
+        with _ransac_rng(rng):
             _, (src, dst) = astroalign.find_transform(P * scale, Q * scale, max_control_points=max(len(P), len(Q)))
     except (astroalign.MaxIterError, ValueError):
         return np.empty((0, 2), dtype=np.intp)
@@ -69,37 +70,26 @@ def merge(P, Q, sigma, tri_p: TriangleBatch, tri_q: TriangleBatch, rng=None) -> 
                             tri_p=tri_p, tri_q=tri_q, parts=parts)
 
 
-#: Held while astroalign sees a swapped numpy: one call at a time, so that no
-#: call draws from another's generator or restores another's swap.
-_SWAP_LOCK = threading.Lock()
+#: numpy's own ``default_rng``, which ``_ransac_rng`` puts back.
+NUMPY_DEFAULT_RNG = np.random.default_rng
+#: Held while ``numpy.random.default_rng`` is replaced: one call at a time, so that no call
+#: restores another's replacement.
+_RNG_LOCK = threading.Lock()
 
 
 @contextmanager
-def _ransac_rng(astroalign, rng: np.random.Generator):
-    """astroalign's view of numpy, whose ``random.default_rng()`` returns ``rng``, for one call."""
-    with _SWAP_LOCK:
-        seen = astroalign._np
-        astroalign._np = _SeededNumpy(rng)
+def _ransac_rng(rng: np.random.Generator):
+    """``numpy.random.default_rng()`` (no seed) returns ``rng`` in this thread, for one call."""
+    caller = threading.get_ident()
+
+    def default_rng(seed=None):
+        if seed is None and threading.get_ident() == caller:
+            return rng
+        return NUMPY_DEFAULT_RNG(seed)
+
+    with _RNG_LOCK:
+        np.random.default_rng = default_rng
         try:
             yield
         finally:
-            astroalign._np = seen
-
-
-class _SeededNumpy:
-    def __init__(self, rng: np.random.Generator):
-        self.random = _SeededRandom(rng)
-
-    def __getattr__(self, name):
-        return getattr(np, name)
-
-
-class _SeededRandom:
-    def __init__(self, rng: np.random.Generator):
-        self._rng = rng
-
-    def default_rng(self, seed=None):
-        return self._rng if seed is None else np.random.default_rng(seed)
-
-    def __getattr__(self, name):
-        return getattr(np.random, name)
+            np.random.default_rng = NUMPY_DEFAULT_RNG
