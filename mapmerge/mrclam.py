@@ -1,0 +1,527 @@
+"""Five robots' own landmark maps from the UTIAS MR.CLAM data set (dataset 7).
+
+The data (``mapmerge/data/mrclam/``, see its SOURCES.md) is one recording of
+five robots driving for about 15 minutes among 15 surveyed landmarks. Each
+robot logs its commanded forward and angular velocity and camera sightings
+(range, bearing) of barcodes; a Vicon system gives every robot's true pose.
+``datasets.mrclam`` builds, for each robot, the landmark map that robot
+would build alone: from its own odometry and its own landmark sightings,
+in the frame of its own first pose, with no Vicon pose used in the solve.
+
+Calibration (``calibrate``), once per robot on its whole log against the
+Vicon poses, as a robot's noise models would be measured before a mission:
+
+- Odometry delay: the robots turn about a quarter of a second after the
+  command is logged. The delay is the one on ``DELAY_GRID`` whose delayed
+  commands, integrated over ``CALIBRATION_WINDOW`` seconds, best predict
+  the Vicon heading change (least squares). Without it the heading error
+  per window is nearly twice as large.
+- Odometry noise: the RMS of the (forward, lateral, heading) error of the
+  delayed, integrated commands over those windows against the Vicon motion,
+  as a random walk: standard deviation per square-root second.
+- Sighting noise: the range and bearing errors of the landmark sightings
+  against the Vicon pose and the surveyed landmark, as robust standard
+  deviations (1.4826 x the median absolute deviation): a few sightings are
+  misread barcodes metres away and would inflate a plain standard deviation.
+
+The solve (``solve_robot``), one robot at a time in time order: a pose at
+each time the robot sighted landmarks, and at least every
+``MAX_POSE_GAP`` seconds; between poses a ``BetweenFactorPose2`` with the
+exactly integrated (arc by arc), delayed commands and the calibrated random
+walk; each sighting a ``BearingRangeFactor2D`` with the calibrated noise
+behind GTSAM's Huber M-estimator (``HUBER_K``), against misread barcodes;
+a landmark seen for the first time is placed from that sighting. iSAM2
+updates after every pose; at the end a batch Levenberg-Marquardt
+refinement starting from the incremental estimate is kept if it lowers the
+graph's error. The first pose is held fixed (prior ``PRIOR_SIGMA``), so the
+map and its per-landmark marginal covariances are in the frame of the
+robot's first pose. Sightings of other robots (subjects 1-5) are not used.
+
+Barcodes are mapped to subjects through ``Barcodes.dat``; a sighting of a
+barcode that is not listed is a misread and is dropped. Times are counted
+from the start of the recording, the earliest Vicon time stamp of the five
+robots; each robot's first pose is at its first odometry line.
+
+Solves and calibrations are cached on disk with ``joblib.Memory`` under
+``cache_dir() / "mrclam"`` (``$MAPMERGE_CACHE`` or ``~/.cache/mapmerge/slam``).
+"""
+
+from __future__ import annotations
+
+import gzip
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ._slam import cache_dir
+from .alignment import align_pairs, wrap_angle
+from .datasets import DatasetError, fit_error, rigid_free_covariance
+
+#: Where the bundled copy of the data lives.
+DATA_DIR = Path(__file__).resolve().parent / "data" / "mrclam"
+#: The robots of the recording (subjects 1-5) and the landmarks' subject numbers.
+ROBOTS = (1, 2, 3, 4, 5)
+LANDMARKS = tuple(range(6, 21))
+#: Seconds over which the odometry is compared with the Vicon motion.
+CALIBRATION_WINDOW = 1.0
+#: Candidate odometry delays, seconds.
+DELAY_GRID = np.round(np.arange(0.0, 0.61, 0.02), 2)
+#: Longest stretch of odometry, seconds, between two poses of the graph.
+MAX_POSE_GAP = 1.0
+#: Huber threshold in standard deviations (the usual 95 %-efficiency value).
+HUBER_K = 1.345
+#: Standard deviation of the prior holding the first pose (m, rad).
+PRIOR_SIGMA = 1e-6
+#: iSAM2's relinearisation (GTSAM's defaults).
+RELINEARIZE_THRESHOLD = 0.1
+RELINEARIZE_SKIP = 10
+#: Solver version, part of the cache key through the arguments of ``solve_robot``.
+SOLVER_VERSION = 1
+#: The MAD of a normal sample is this many times smaller than its standard deviation.
+MAD_TO_SIGMA = 1.4826
+
+
+@dataclass(frozen=True)
+class RobotLog:
+    """One robot's files, parsed.
+
+    Attributes
+    ----------
+    robot : int
+    odometry : (n, 3) ndarray
+        Time (s), commanded forward (m/s) and angular (rad/s) velocity; of
+        lines sharing a time stamp the last only (the command then in force).
+    sightings : (m, 4) ndarray
+        Time, landmark subject (6-20), range (m), bearing (rad).
+    robot_sightings : (r, 4) ndarray
+        The same for sightings of other robots (subjects 1-5), not used by the maps.
+    misread : int
+        Sightings of barcodes that ``Barcodes.dat`` does not list (dropped).
+    groundtruth : (g, 4) ndarray
+        Vicon time, x, y (m), heading (rad).
+    """
+
+    robot: int
+    odometry: np.ndarray
+    sightings: np.ndarray
+    robot_sightings: np.ndarray
+    misread: int
+    groundtruth: np.ndarray
+
+
+@dataclass(frozen=True)
+class Recording:
+    """The parsed data set: ``landmarks`` (15, 3) rows of subject, x, y (surveyed, m);
+    ``start`` the recording's first Vicon time (s); ``robots`` the ``RobotLog`` of each robot asked for."""
+
+    landmarks: np.ndarray
+    start: float
+    robots: dict
+    path: Path
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """One robot's noise models, measured against the Vicon poses (see the module docstring).
+
+    Attributes
+    ----------
+    delay : float
+        Odometry delay, s.
+    odometry_sigma : (3,) ndarray
+        Forward, lateral, heading standard deviation per square-root second (m, m, rad).
+    range_sigma, bearing_sigma : float
+        Robust standard deviations of one sighting (m, rad).
+    range_bias, bearing_bias : float
+        Median sighting errors (reported, not corrected).
+    heading_rms_undelayed : float
+        RMS heading error per window without the delay, for comparison (rad).
+    windows, sightings : int
+        How many odometry windows and landmark sightings the numbers come from.
+    """
+
+    delay: float
+    odometry_sigma: np.ndarray
+    range_sigma: float
+    bearing_sigma: float
+    range_bias: float
+    bearing_bias: float
+    heading_rms_undelayed: float
+    windows: int
+    sightings: int
+
+
+@dataclass(frozen=True)
+class MrclamTeam:
+    """The robots' maps with ground truth, with the attributes of ``simulate.Team``.
+
+    Attributes
+    ----------
+    robots : tuple of int
+        Robot numbers, in the order of the lists below.
+    maps : list of (n_i, 2) ndarray
+        Each robot's landmarks in the frame of its first pose (m).
+    covs : list of (n_i, 2, 2) ndarray
+        Their marginal covariances, first pose held fixed.
+    shape_covs : list of (n_i, 2, 2) ndarray
+        The same with each map's rigid motion removed
+        (``datasets.rigid_free_covariance``): what is left once maps are aligned.
+    ids : list of (n_i,) int ndarray
+        Landmark subject numbers (6-20), sorted.
+    truth : (21, 2) ndarray
+        Surveyed landmark positions in the world (Vicon) frame, row = subject
+        number; rows 0-5 (no landmark) are NaN.
+    first_poses : (N, 3) ndarray
+        Each robot's true first pose (x, y, heading) in the world frame.
+    theta, t : (N,), (N, 2) ndarray
+        Rigid fit of each map onto the surveyed landmarks by id, in the
+        convention map_i ≈ R(θ_i) world + t_i.
+    sigma : (N,) ndarray
+        RMS per-coordinate standard deviation of each map's entries (from ``covs``).
+    stranger : (N,) bool ndarray
+        All False: every robot drove in the same arena.
+    rms : (N,) ndarray
+        Each map's RMS distance from the surveyed landmarks after the fit (m).
+    rms_incremental : (N,) ndarray
+        The same for the iSAM2 estimate before the batch refinement.
+    sightings : (N,) int ndarray
+        Landmark sightings each map was built from.
+    calibrations : tuple of Calibration
+    until_s : float or None
+    """
+
+    robots: tuple
+    maps: list
+    covs: list
+    shape_covs: list
+    ids: list
+    truth: np.ndarray
+    first_poses: np.ndarray
+    theta: np.ndarray
+    t: np.ndarray
+    sigma: np.ndarray
+    stranger: np.ndarray
+    rms: np.ndarray
+    rms_incremental: np.ndarray
+    sightings: np.ndarray
+    calibrations: tuple
+    until_s: float | None
+
+
+def _file(root: Path, name: str) -> Path:
+    for candidate in (root / name, root / f"{name}.gz"):
+        if candidate.is_file():
+            return candidate
+    raise DatasetError(f"MR.CLAM file not found: {root / name} (or {name}.gz)")
+
+
+def _table(root: Path, name: str, columns: int) -> np.ndarray:
+    path = _file(root, name)
+    try:
+        table = np.loadtxt(path, ndmin=2, comments="#")
+    except (ValueError, OSError) as exc:
+        raise DatasetError(f"{path} is malformed: {exc}") from None
+    if table.shape[1] != columns or len(table) == 0:
+        raise DatasetError(f"{path} must have {columns} columns and at least one line, got shape {table.shape}")
+    return table
+
+
+def _first_time(root: Path, name: str) -> float:
+    path = _file(root, name)
+    opener = gzip.open if path.suffix == ".gz" else open
+    with opener(path, "rt") as fh:
+        for line in fh:
+            if line.strip() and not line.lstrip().startswith("#"):
+                try:
+                    return float(line.split()[0])
+                except ValueError:
+                    break
+    raise DatasetError(f"{path} has no data line")
+
+
+def load(path=None, robots=ROBOTS) -> Recording:
+    """Parse an MR.CLAM dataset directory (default: the bundled copy of dataset 7).
+
+    Each file may be the original ``X.dat`` or gzip-compressed ``X.dat.gz``.
+
+    Raises
+    ------
+    DatasetError
+        If the directory or a file is missing or a file does not parse.
+    """
+    root = Path(path) if path is not None else DATA_DIR
+    if not root.is_dir():
+        raise DatasetError(f"MR.CLAM directory not found: {root}")
+    barcodes = _table(root, "Barcodes.dat", 2).astype(np.int64)
+    landmarks = _table(root, "Landmark_Groundtruth.dat", 5)[:, :3]
+    subject_of = dict(zip(barcodes[:, 1].tolist(), barcodes[:, 0].tolist()))
+    start = min(_first_time(root, f"Robot{k}_Groundtruth.dat") for k in ROBOTS)
+    logs = {}
+    for k in robots:
+        odometry = _table(root, f"Robot{k}_Odometry.dat", 3)
+        odometry = odometry[np.r_[np.diff(odometry[:, 0]) > 0, True]]
+        if np.any(np.diff(odometry[:, 0]) < 0):
+            raise DatasetError(f"Robot{k}_Odometry.dat: time stamps go backwards")
+        raw = _table(root, f"Robot{k}_Measurement.dat", 4)
+        subject = np.array([subject_of.get(int(b), -1) for b in raw[:, 1]])
+        seen = np.column_stack([raw[:, 0], subject, raw[:, 2:]])
+        is_landmark = np.isin(subject, landmarks[:, 0])
+        logs[k] = RobotLog(
+            robot=k, odometry=odometry, sightings=seen[is_landmark],
+            robot_sightings=seen[(subject >= 1) & (subject <= len(ROBOTS))], misread=int(np.sum(subject < 0)),
+            groundtruth=_table(root, f"Robot{k}_Groundtruth.dat", 4),
+        )
+    return Recording(landmarks=landmarks, start=start, robots=logs, path=root)
+
+
+def dead_reckon(odometry: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """Poses (x, y, heading) at ``times`` from commands held until the next line, integrated exactly.
+
+    The pose at ``odometry[0, 0]`` is the origin; ``times`` must be sorted
+    and not earlier. Each piece of constant (v, ω) is an arc.
+    """
+    breaks = np.union1d(odometry[:, 0], times)
+    line = np.searchsorted(odometry[:, 0], breaks[:-1], side="right") - 1
+    v, w, dt = odometry[line, 1], odometry[line, 2], np.diff(breaks)
+    heading = np.r_[0.0, np.cumsum(w * dt)]
+    a, b = heading[:-1], heading[1:]
+    straight = np.abs(w * dt) < 1e-9
+    radius = v / np.where(straight, 1.0, w)
+    dx = np.where(straight, v * dt * np.cos(a), radius * (np.sin(b) - np.sin(a)))
+    dy = np.where(straight, v * dt * np.sin(a), radius * (np.cos(a) - np.cos(b)))
+    poses = np.column_stack([np.r_[0.0, np.cumsum(dx)], np.r_[0.0, np.cumsum(dy)], heading])
+    return poses[np.searchsorted(breaks, times)]
+
+
+def relative_poses(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Pose b in the frame of pose a, row by row: (dx, dy, dθ)."""
+    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
+    d = b[:, :2] - a[:, :2]
+    return np.column_stack([c * d[:, 0] + s * d[:, 1], c * d[:, 1] - s * d[:, 0], wrap_angle(b[:, 2] - a[:, 2])])
+
+
+def vicon_poses(groundtruth: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """Vicon poses linearly interpolated at ``times`` (heading unwrapped first)."""
+    heading = np.unwrap(groundtruth[:, 3])
+    return np.column_stack([np.interp(times, groundtruth[:, 0], groundtruth[:, c]) for c in (1, 2)]
+                           + [np.interp(times, groundtruth[:, 0], heading)])
+
+
+def delayed(odometry: np.ndarray, delay: float) -> np.ndarray:
+    """Commands taking effect ``delay`` seconds after they are logged (standing still until the first does)."""
+    return np.r_[[[odometry[0, 0], 0.0, 0.0]], odometry + [delay, 0.0, 0.0]]
+
+
+def sighting_errors(log: RobotLog, landmarks: np.ndarray):
+    """Range and bearing errors of each landmark sighting against the Vicon pose and the surveyed landmark."""
+    where = dict(zip(landmarks[:, 0].astype(int).tolist(), landmarks[:, 1:]))
+    target = np.array([where[int(s)] for s in log.sightings[:, 1]]).reshape(-1, 2)
+    pose = vicon_poses(log.groundtruth, log.sightings[:, 0])
+    d = target - pose[:, :2]
+    range_err = log.sightings[:, 2] - np.hypot(d[:, 0], d[:, 1])
+    bearing_err = wrap_angle(log.sightings[:, 3] - (np.arctan2(d[:, 1], d[:, 0]) - pose[:, 2]))
+    return range_err, bearing_err
+
+
+def _robust_sigma(e: np.ndarray) -> float:
+    return float(MAD_TO_SIGMA * np.median(np.abs(e - np.median(e))))
+
+
+def calibrate(log: RobotLog, landmarks: np.ndarray) -> Calibration:
+    """Measure one robot's odometry delay and noise models against the Vicon poses (module docstring)."""
+    odo = log.odometry
+    start = np.arange(odo[0, 0], odo[-1, 0] - CALIBRATION_WINDOW, CALIBRATION_WINDOW)
+    n = len(start)
+    if n < 10 or len(log.sightings) < 10:
+        raise DatasetError(f"robot {log.robot}: too little data to calibrate ({n} odometry windows, "
+                           f"{len(log.sightings)} landmark sightings)")
+    times = np.r_[start, start + CALIBRATION_WINDOW]
+    truth = vicon_poses(log.groundtruth, times)
+    true_motion = relative_poses(truth[:n], truth[n:])
+
+    def errors(delay):
+        poses = dead_reckon(delayed(odo, delay), times)
+        e = true_motion - relative_poses(poses[:n], poses[n:])
+        e[:, 2] = wrap_angle(e[:, 2])
+        return e
+
+    heading_mse = [np.mean(errors(d)[:, 2] ** 2) for d in DELAY_GRID]
+    delay = float(DELAY_GRID[int(np.argmin(heading_mse))])
+    e = errors(delay)
+    range_err, bearing_err = sighting_errors(log, landmarks)
+    return Calibration(
+        delay=delay, odometry_sigma=np.sqrt(np.mean(e**2, axis=0) / CALIBRATION_WINDOW),
+        range_sigma=_robust_sigma(range_err), bearing_sigma=_robust_sigma(bearing_err),
+        range_bias=float(np.median(range_err)), bearing_bias=float(np.median(bearing_err)),
+        heading_rms_undelayed=float(np.sqrt(heading_mse[0])), windows=n, sightings=len(range_err),
+    )
+
+
+def solve_robot(odometry: np.ndarray, sightings: np.ndarray, end_time: float, delay: float,
+                odometry_sigma: np.ndarray, sighting_sigma: np.ndarray, version: int = SOLVER_VERSION) -> dict:
+    """One robot's landmark map by iSAM2 (then a batch refinement), in the frame of its first pose.
+
+    Parameters
+    ----------
+    odometry : (n, 3) ndarray
+        The robot's odometry lines (time, v, ω); the first pose is at ``odometry[0, 0]``.
+    sightings : (m, 4) ndarray
+        Landmark sightings (time, subject, range, bearing) between the first pose and ``end_time``.
+    end_time : float
+        The last pose's time (not after the last odometry line).
+    delay, odometry_sigma, sighting_sigma
+        The calibration: delay (s), (forward, lateral, heading) σ per √s,
+        (bearing, range) σ of one sighting.
+    version : int
+        Part of the cache key.
+
+    Returns
+    -------
+    dict
+        ``ids`` (k,), ``points`` (k, 2), ``joint`` (2k, 2k) joint marginal
+        covariance of the landmarks, ``incremental`` (k, 2) the iSAM2
+        estimate before refinement, ``poses`` the number of poses.
+    """
+    try:
+        import gtsam
+    except ImportError as exc:
+        raise ImportError("the MR.CLAM maps need GTSAM: pip install 'mapmerge[slam]'") from exc
+    first = odometry[0, 0]
+    grid = np.arange(first, end_time, MAX_POSE_GAP)
+    times = np.union1d(np.union1d(grid, sightings[:, 0]), [end_time])
+    poses = dead_reckon(delayed(odometry, delay), times)
+    steps = relative_poses(poses[:-1], poses[1:])
+    step_sigma = np.maximum(odometry_sigma[None, :] * np.sqrt(np.diff(times))[:, None], PRIOR_SIGMA)
+    at_pose = np.searchsorted(times, sightings[:, 0])
+    by_pose = np.searchsorted(at_pose, np.arange(len(times) + 1))
+
+    def pose_key(i):
+        return gtsam.symbol("x", int(i))
+
+    def landmark_key(subject):
+        return gtsam.symbol("l", int(subject))
+
+    sighting_noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(HUBER_K),
+                                                    gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sighting_sigma, float)))
+    params = gtsam.ISAM2Params()
+    params.setRelinearizeThreshold(RELINEARIZE_THRESHOLD)
+    params.relinearizeSkip = RELINEARIZE_SKIP
+    isam = gtsam.ISAM2(params)
+    full = gtsam.NonlinearFactorGraph()
+    placed: list[int] = []
+    current = gtsam.Pose2()
+    for i in range(len(times)):
+        new, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        if i == 0:
+            new.add(gtsam.PriorFactorPose2(pose_key(0), current, gtsam.noiseModel.Isotropic.Sigma(3, PRIOR_SIGMA)))
+        else:
+            step = gtsam.Pose2(*steps[i - 1])
+            new.add(gtsam.BetweenFactorPose2(pose_key(i - 1), pose_key(i), step,
+                                             gtsam.noiseModel.Diagonal.Sigmas(step_sigma[i - 1])))
+            current = current.compose(step)
+        values.insert(pose_key(i), current)
+        for _, subject, rng, bearing in sightings[by_pose[i]:by_pose[i + 1]]:
+            new.add(gtsam.BearingRangeFactor2D(pose_key(i), landmark_key(subject), gtsam.Rot2(bearing), rng,
+                                               sighting_noise))
+            if int(subject) not in placed:
+                placed.append(int(subject))
+                values.insert(landmark_key(subject),
+                              current.transformFrom(gtsam.Point2(rng * np.cos(bearing), rng * np.sin(bearing))))
+        isam.update(new, values)
+        full.push_back(new)
+        current = isam.calculateEstimatePose2(pose_key(i))
+    estimate = isam.calculateEstimate()
+    refined = gtsam.LevenbergMarquardtOptimizer(full, estimate).optimize()
+    solution = refined if full.error(refined) < full.error(estimate) else estimate
+    ids = np.array(sorted(placed), dtype=np.int64)
+    keys = gtsam.KeyVector()
+    for subject in ids:
+        keys.append(landmark_key(subject))
+    # The joint marginal's blocks come in key order, which for one symbol letter is the ids' order.
+    joint = gtsam.Marginals(full, solution).jointMarginalCovariance(keys).fullMatrix()
+    return {
+        "ids": ids,
+        "points": np.array([solution.atPoint2(landmark_key(s)) for s in ids]).reshape(-1, 2),
+        "incremental": np.array([estimate.atPoint2(landmark_key(s)) for s in ids]).reshape(-1, 2),
+        "joint": joint,
+        "poses": len(times),
+    }
+
+
+def _memory():
+    import joblib
+
+    return joblib.Memory(cache_dir() / "mrclam", verbose=0)
+
+
+def _check_robots(robots) -> tuple:
+    try:
+        chosen = tuple(robots)
+    except TypeError:
+        chosen = None
+    ok = (chosen is not None and len(chosen) > 0 and len(set(chosen)) == len(chosen)
+          and all(not isinstance(k, bool) and isinstance(k, (int, np.integer)) and k in ROBOTS for k in chosen))
+    if not ok:
+        raise ValueError(f"robots must be distinct robot numbers among {ROBOTS}, got {robots!r}")
+    return tuple(int(k) for k in chosen)
+
+
+def _check_until(until_s):
+    if until_s is None:
+        return None
+    if isinstance(until_s, bool) or not isinstance(until_s, (int, float, np.integer, np.floating)) \
+            or not 0 < until_s < np.inf:
+        raise ValueError(f"until_s must be a positive number of seconds or None, got {until_s!r}")
+    return float(until_s)
+
+
+def team(path=None, robots=ROBOTS, until_s=None) -> MrclamTeam:
+    """The robots' own maps (``datasets.mrclam`` documents the arguments)."""
+    robots = _check_robots(robots)
+    until_s = _check_until(until_s)
+    recording = load(path, robots)
+    memory = _memory()
+    cached_calibrate, cached_solve = memory.cache(calibrate), memory.cache(solve_robot)
+    truth = np.full((max(LANDMARKS) + 1, 2), np.nan)
+    truth[recording.landmarks[:, 0].astype(int)] = recording.landmarks[:, 1:]
+    out = {name: [] for name in ("maps", "covs", "shape_covs", "ids", "first_poses", "theta", "t", "sigma",
+                                 "rms", "rms_incremental", "sightings", "calibrations")}
+    for k in robots:
+        log = recording.robots[k]
+        cal = cached_calibrate(log, recording.landmarks)
+        first = log.odometry[0, 0]
+        end = log.odometry[-1, 0] if until_s is None else min(log.odometry[-1, 0], recording.start + until_s)
+        use = (log.sightings[:, 0] >= first) & (log.sightings[:, 0] <= end)
+        if end <= first or np.unique(log.sightings[use, 1]).size < 2:
+            raise ValueError(f"until_s={until_s} leaves robot {k} with fewer than 2 landmarks sighted: "
+                             "choose a longer time")
+        sol = cached_solve(log.odometry[log.odometry[:, 0] <= end], log.sightings[use], float(end), cal.delay,
+                           cal.odometry_sigma, np.array([cal.bearing_sigma, cal.range_sigma]))
+        ids, points, joint = sol["ids"], sol["points"], sol["joint"]
+        m = len(ids)
+        covs = joint.reshape(m, 2, m, 2)[np.arange(m), :, np.arange(m), :]
+        shape = rigid_free_covariance(points, joint).reshape(m, 2, m, 2)[np.arange(m), :, np.arange(m), :]
+        fit = align_pairs(truth[ids], points, 1.0)  # map ≈ R(θ) world + t
+        out["maps"].append(points)
+        out["covs"].append(covs)
+        out["shape_covs"].append(shape)
+        out["ids"].append(ids)
+        out["first_poses"].append(vicon_poses(log.groundtruth, np.array([first]))[0])
+        out["theta"].append(fit.theta)
+        out["t"].append(fit.t)
+        out["sigma"].append(float(np.sqrt(np.mean(np.trace(covs, axis1=1, axis2=2) / 2))))
+        out["rms"].append(fit_error(points, truth[ids])["rmse"])
+        out["rms_incremental"].append(fit_error(sol["incremental"], truth[ids])["rmse"])
+        out["sightings"].append(int(use.sum()))
+        out["calibrations"].append(cal)
+    first_poses = np.array(out["first_poses"])
+    first_poses[:, 2] = wrap_angle(first_poses[:, 2])
+    return MrclamTeam(
+        robots=robots, maps=out["maps"], covs=out["covs"], shape_covs=out["shape_covs"], ids=out["ids"],
+        truth=truth, first_poses=first_poses, theta=wrap_angle(np.array(out["theta"])), t=np.array(out["t"]),
+        sigma=np.array(out["sigma"]), stranger=np.zeros(len(robots), bool), rms=np.array(out["rms"]),
+        rms_incremental=np.array(out["rms_incremental"]), sightings=np.array(out["sightings"]),
+        calibrations=tuple(out["calibrations"]), until_s=until_s,
+    )
+
