@@ -14,14 +14,11 @@ override parser (``Override.sweep_string_iterator``) and ``hydra.compose``.
 
 from __future__ import annotations
 
-import dataclasses
-import difflib
 import importlib.util
 import itertools
-import typing
 from pathlib import Path
 
-from .schema import CONF_DIR, Config, ConfigError, register_configs, validate
+from .schema import CONF_DIR, ConfigError, register_configs, unknown_key, validate
 
 #: Hydra launchers that ship in an optional extra of this package: option -> (plugin module, extra).
 LAUNCHER_EXTRAS = {"submitit_slurm": ("hydra_plugins.hydra_submitit_launcher", "launchers"),
@@ -132,18 +129,6 @@ def check_overrides(overrides) -> None:
         near = unknown_key(key)
         if near is not None:
             raise ConfigError(f"{key} is not a config key" + (f"; did you mean {near}?" if near else ""))
-
-
-def unknown_key(key: str, schema=Config) -> str | None:
-    """None if ``key`` (dotted) is a field of the schema, else the nearest field's key ('' if none is near)."""
-    parts = key.split(".")
-    for i, part in enumerate(parts):
-        hints = typing.get_type_hints(schema) if dataclasses.is_dataclass(schema) else {}
-        if part not in hints:
-            near = difflib.get_close_matches(part, list(hints), n=1)
-            return ".".join(parts[:i] + near) if near else ""
-        schema = hints[part]
-    return None
 
 
 def check_launcher(cfg) -> None:

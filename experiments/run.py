@@ -78,8 +78,8 @@ def _run_key(cfg: DictConfig) -> str:
     from .trials import arithmetic_digest, code_digest
 
     key = {
-        "scenario": OmegaConf.to_container(cfg.scenario),
-        "matcher": OmegaConf.to_container(cfg.matcher),
+        "scenario": OmegaConf.to_container(cfg.scenario, enum_to_str=True),
+        "matcher": OmegaConf.to_container(cfg.matcher, enum_to_str=True),
         "seed": cfg.mc.seed,
         "code": code_digest(),
         "arithmetic": arithmetic_digest(),
@@ -142,8 +142,9 @@ def run(cfg: DictConfig, output_dir: str | Path) -> Path:
     chunk_dir.mkdir(parents=True, exist_ok=True)
     OmegaConf.save(cfg, out / "config.yaml", resolve=True)
 
-    scenario = OmegaConf.to_container(cfg.scenario)
-    matcher = OmegaConf.to_container(cfg.matcher)
+    # Plain values (the enums' names) for the trials, the cache key and the result files.
+    scenario = OmegaConf.to_container(cfg.scenario, enum_to_str=True)
+    matcher = OmegaConf.to_container(cfg.matcher, enum_to_str=True)
     n, seed = cfg.mc.n_trials, cfg.mc.seed
     # chunk_size is an upper bound: every worker gets at least one chunk.
     size = min(cfg.mc.chunk_size, -(-n // cfg.mc.n_jobs))
@@ -156,7 +157,7 @@ def run(cfg: DictConfig, output_dir: str | Path) -> Path:
     todo = [(a, b) for a, b in bounds if not Path(f"{stem(a, b)}.trials.parquet").exists()]
     log.info(
         "cell %s: %d trials in %d chunks, %d to run, n_jobs=%d backend=%s",
-        scenario, n, len(bounds), len(todo), cfg.mc.n_jobs, cfg.mc.backend,
+        scenario, n, len(bounds), len(todo), cfg.mc.n_jobs, str(cfg.mc.backend),
     )
     fresh = {}  # the chunks this process computed or received, kept rather than read back
     if todo:
@@ -170,8 +171,8 @@ def run(cfg: DictConfig, output_dir: str | Path) -> Path:
                   "rerun the same command to resume", file=sys.stderr)
             raise SystemExit(130)
 
-    cell = {**scenario, "method": cfg.matcher.method, "objective": cfg.matcher.objective,
-            "use_cov": cfg.matcher.use_cov, "seed": seed, "cell_key": cell_key(scenario)}
+    cell = {**scenario, "method": matcher["method"], "objective": matcher["objective"],
+            "use_cov": matcher["use_cov"], "seed": seed, "cell_key": cell_key(scenario)}
     # Summaries of older files must not outlive them.
     for kind in SUMMARIES:
         summary_path(out, kind).unlink(missing_ok=True)

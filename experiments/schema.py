@@ -1,9 +1,13 @@
-"""Structured config schemas (Hydra ConfigStore) and their range checks.
+"""Typed config schemas (Hydra ConfigStore) with their range checks.
 
-The dataclasses give every key a type, so unknown keys and wrong types are
-rejected by Hydra at composition. ``validate`` adds the range checks and
-raises ``ConfigError`` with one line naming the key, the value and what is
-allowed, before any work starts or any file is written.
+Every key has a type: choices (method, objective, layout, source, backend,
+kind) are enums, so a wrong type or a value outside a choice (e.g.
+``matcher.method=papr``) is refused by Hydra at composition, with the
+allowed values listed. The ranges are checked in each dataclass's
+``__post_init__``, which ``validate`` reaches through
+``OmegaConf.to_object``: a value out of range raises ``ConfigError`` with
+one line naming the key, the value and what is allowed, before any work
+starts or any file is written.
 """
 
 from __future__ import annotations
@@ -13,10 +17,16 @@ import difflib
 import importlib.util
 import typing
 from dataclasses import dataclass, field
+from enum import StrEnum
 from pathlib import Path
-from typing import Optional
 
 from hydra.core.config_store import ConfigStore
+from omegaconf import OmegaConf, open_dict
+
+from mapmerge.datasets import SOURCES
+from mapmerge.matching import OBJECTIVES, resolve_log_tau
+from mapmerge.merging import METHODS
+from mapmerge.simulate import LAYOUTS, ScenarioError, check_scenario
 
 
 def _conf_dir() -> str:
@@ -31,18 +41,37 @@ def _conf_dir() -> str:
 
 CONF_DIR = _conf_dir()
 
-BACKENDS = ("loky", "dask")
-KINDS = ("synthetic", "victoria_park")
+
+def _choices(name: str, values) -> type[StrEnum]:
+    """An enum whose members are ``values`` (names equal to values: configs spell them plainly)."""
+    return StrEnum(name, {v: v for v in values})
+
+
+#: The library's own lists, so that a method added there is accepted here.
+Method = _choices("Method", METHODS)
+Objective = _choices("Objective", OBJECTIVES)
+Layout = _choices("Layout", LAYOUTS)
+Source = _choices("Source", SOURCES)
+#: joblib backends the harness runs chunks on.
+Backend = _choices("Backend", ("loky", "dask"))
+#: Synthetic maps (mapmerge.simulate) or a real data set.
+Kind = _choices("Kind", ("synthetic", "victoria_park"))
+#: Pose indices of the Victoria Park drive (mapmerge.datasets).
+VICTORIA_PARK_POSES = (1, 6966)
 
 
 class ConfigError(ValueError):
     """A config value outside what the harness accepts."""
 
 
+def _fail(key: str, value, allowed: str):
+    raise ConfigError(f"{key}={value!r} is invalid: {allowed}")
+
+
 @dataclass
 class ScenarioConfig:
-    # "synthetic" (mapmerge.simulate) or "victoria_park" (real data: cut, source).
-    kind: str = "synthetic"
+    # Synthetic maps (mapmerge.simulate) or real data (victoria_park: cut, source).
+    kind: Kind = Kind.synthetic
     n_landmarks: int = 100
     overlap: float = 0.75
     snr_db: float = 40.0
@@ -51,7 +80,7 @@ class ScenarioConfig:
     unrelated: bool = False
     # "strip" (the paper's: unshared landmarks only outside the overlap) or
     # "interleaved" (each agent detects an overlap landmark with p_detect).
-    layout: str = "strip"
+    layout: Layout = Layout.strip
     p_detect: float = 0.9
     # Spurious landmarks per map, as a fraction of n_landmarks.
     clutter: float = 0.0
@@ -59,13 +88,26 @@ class ScenarioConfig:
     anisotropy: float = 0.0
     # Victoria Park: pose index where agent q takes over, and how agents map.
     cut: int = 3483
-    source: str = "reference"
+    source: Source = Source.reference
+
+    def __post_init__(self):
+        if self.kind == Kind.victoria_park:
+            first, last = VICTORIA_PARK_POSES
+            if not first <= self.cut <= last:
+                _fail("scenario.cut", self.cut, f"must be a pose index in [{first}, {last}]")
+            if self.source == "slam" and importlib.util.find_spec("gtsam") is None:
+                _fail("scenario.source", str(self.source), "needs GTSAM: pip install 'mapmerge[slam]'")
+        try:
+            check_scenario(self.n_landmarks, self.overlap, self.snr_db, self.aspect, str(self.layout), self.p_detect,
+                           self.clutter, self.anisotropy)
+        except ScenarioError as e:
+            _fail(f"scenario.{e.argument}", e.value, e.rule)
 
 
 @dataclass
 class MatcherConfig:
-    method: str = "paper"
-    objective: str = "lr"
+    method: Method = Method.paper
+    objective: Objective = Objective.lr
     # τ rules compared on the same trials: "oracle", "chi2:P" or a log-LR.
     taus: list[str] = field(default_factory=lambda: ["oracle", "chi2:0.01", "chi2:0.001"])
     # Pass the maps' per-landmark covariances (consensus's association and acceptance, fusion of every method).
@@ -74,6 +116,21 @@ class MatcherConfig:
     # (true transform, noise model and prior; oracle_correct_pairs / oracle_wrong_pairs)
     # and the transform oracle (true transform only; transform_oracle_* columns).
     oracle: bool = False
+
+    def __post_init__(self):
+        if self.method == "astroalign" and importlib.util.find_spec("astroalign") is None:
+            _fail("matcher.method", str(self.method), "needs the optional package: pip install 'mapmerge[baselines]'")
+        taus = list(self.taus)
+        if not taus:
+            _fail("matcher.taus", taus, "must list at least one τ rule")
+        if len(set(taus)) != len(taus):
+            _fail("matcher.taus", taus, "must not repeat a rule")
+        for rule in taus:
+            if rule != "oracle":
+                try:
+                    resolve_log_tau(rule)
+                except ValueError:
+                    _fail("matcher.taus", rule, "each rule is 'oracle', 'chi2:P' with P in (0, 1), or a log-LR number")
 
 
 @dataclass
@@ -84,12 +141,23 @@ class MCConfig:
     # least n_jobs chunks. Larger chunks amortise per-chunk file I/O.
     chunk_size: int = 1000
     seed: int = 0
-    backend: str = "loky"
+    backend: Backend = Backend.loky
     # dask.distributed scheduler address; null with backend=dask starts a LocalCluster.
-    address: Optional[str] = None
+    address: str | None = None
     # Trials whose full geometry is saved for Fig. 1 / Fig. 2 (0 = none).
     examples: int = 0
     progress: bool = True
+
+    def __post_init__(self):
+        for key in ("n_trials", "n_jobs", "chunk_size"):
+            if getattr(self, key) < 1:
+                _fail(f"mc.{key}", getattr(self, key), "must be >= 1")
+        if self.seed < 0:
+            _fail("mc.seed", self.seed, "must be >= 0")
+        if self.address is not None and self.backend != Backend.dask:
+            _fail("mc.address", self.address, "is only used with mc.backend=dask")
+        if not 0 <= self.examples <= self.n_trials:
+            _fail("mc.examples", self.examples, "must be between 0 and mc.n_trials")
 
 
 @dataclass
@@ -99,7 +167,11 @@ class Config:
     matcher: MatcherConfig = field(default_factory=MatcherConfig)
     mc: MCConfig = field(default_factory=MCConfig)
     # Where aggregate tables land after a multirun (null: <sweep dir>/aggregate).
-    aggregate_dir: Optional[str] = None
+    aggregate_dir: str | None = None
+
+    def __post_init__(self):
+        if self.scenario.kind == Kind.victoria_park and self.mc.n_trials != 1:
+            _fail("mc.n_trials", self.mc.n_trials, "must be 1 for a real data set (its maps are fixed)")
 
 
 def register_configs() -> None:
@@ -107,80 +179,51 @@ def register_configs() -> None:
     ConfigStore.instance().store(name="base_config", node=Config)
 
 
-def _fail(key: str, value, allowed: str):
-    raise ConfigError(f"{key}={value!r} is invalid: {allowed}")
+def unknown_key(key: str, schema=Config) -> str | None:
+    """None if ``key`` (dotted) is a field of the schema, else the nearest field's key ('' if none is near)."""
+    parts = key.split(".")
+    for i, part in enumerate(parts):
+        hints = typing.get_type_hints(schema) if dataclasses.is_dataclass(schema) else {}
+        if part not in hints:
+            near = difflib.get_close_matches(part, list(hints), n=1)
+            return ".".join(parts[:i] + near) if near else ""
+        schema = hints[part]
+    return None
 
 
-def unknown_keys(cfg, schema=Config, prefix: str = "") -> list[tuple[str, str | None]]:
-    """Keys of ``cfg`` the schema does not have, each with the nearest valid key (or None)."""
-    hints = typing.get_type_hints(schema)
-    found = []
-    for key in cfg.keys():
-        if key == "hydra" and not prefix:
-            continue
-        if key not in hints:
-            near = difflib.get_close_matches(str(key), list(hints), n=1)
-            found.append((prefix + str(key), prefix + near[0] if near else None))
-        elif dataclasses.is_dataclass(hints[key]):
-            found += unknown_keys(cfg[key], hints[key], f"{prefix}{key}.")
-    return found
+def _leaf_keys(cfg, prefix: str = ""):
+    for key in cfg:
+        node = cfg[key]
+        if OmegaConf.is_dict(node):
+            yield from _leaf_keys(node, f"{prefix}{key}.")
+        else:
+            yield f"{prefix}{key}"
 
 
-def validate(cfg) -> None:
-    """Check a composed config against the schema and the allowed ranges;
-    raise ConfigError on the first bad key."""
-    for key, near in unknown_keys(cfg):
-        raise ConfigError(f"{key} is not a config key" + (f"; did you mean {near}?" if near else ""))
-    # The library is imported only for the range checks, so that a mistyped key
-    # or value is refused before numpy and scipy load.
-    from mapmerge.datasets import SOURCES
-    from mapmerge.matching import OBJECTIVES, resolve_log_tau
-    from mapmerge.merging import METHODS
-    from mapmerge.simulate import ScenarioError, check_scenario
+def validate(cfg) -> Config:
+    """Check a composed config against the schema and its ranges.
 
-    s, m, mc = cfg.scenario, cfg.matcher, cfg.mc
-    if s.kind not in KINDS:
-        _fail("scenario.kind", s.kind, f"must be one of {list(KINDS)}")
-    if s.kind == "victoria_park":
-        if not 1 <= s.cut <= 6966:
-            _fail("scenario.cut", s.cut, "must be a pose index in [1, 6966]")
-        if s.source not in SOURCES:
-            _fail("scenario.source", s.source, f"must be one of {list(SOURCES)}")
-        if s.source == "slam" and importlib.util.find_spec("gtsam") is None:
-            _fail("scenario.source", s.source, "needs GTSAM: pip install -e '.[slam]'")
-        if mc.n_trials != 1:
-            _fail("mc.n_trials", mc.n_trials, "must be 1 for a real data set (its maps are fixed)")
-    try:
-        check_scenario(s.n_landmarks, s.overlap, s.snr_db, s.aspect, s.layout, s.p_detect, s.clutter, s.anisotropy)
-    except ScenarioError as e:
-        _fail(f"scenario.{e.argument}", e.value, e.rule)
-    if m.method not in METHODS:
-        _fail("matcher.method", m.method, f"must be one of {list(METHODS)}")
-    if m.method == "astroalign" and importlib.util.find_spec("astroalign") is None:
-        _fail("matcher.method", m.method, "needs the optional package: pip install -e '.[baselines]'")
-    if m.objective not in OBJECTIVES:
-        _fail("matcher.objective", m.objective, f"must be one of {list(OBJECTIVES)}")
-    if len(m.taus) == 0:
-        _fail("matcher.taus", list(m.taus), "must list at least one τ rule")
-    if len(set(m.taus)) != len(m.taus):
-        _fail("matcher.taus", list(m.taus), "must not repeat a rule")
-    for rule in m.taus:
-        if rule != "oracle":
-            try:
-                resolve_log_tau(rule)
-            except ValueError:
-                _fail("matcher.taus", rule, "each rule is 'oracle', 'chi2:P' with P in (0, 1), or a log-LR number")
-    if mc.n_trials < 1:
-        _fail("mc.n_trials", mc.n_trials, "must be >= 1")
-    if mc.n_jobs < 1:
-        _fail("mc.n_jobs", mc.n_jobs, "must be >= 1")
-    if mc.chunk_size < 1:
-        _fail("mc.chunk_size", mc.chunk_size, "must be >= 1")
-    if mc.seed < 0:
-        _fail("mc.seed", mc.seed, "must be >= 0")
-    if mc.backend not in BACKENDS:
-        _fail("mc.backend", mc.backend, f"must be one of {list(BACKENDS)}")
-    if mc.address is not None and mc.backend != "dask":
-        _fail("mc.address", mc.address, "is only used with mc.backend=dask")
-    if not (0 <= mc.examples <= mc.n_trials):
-        _fail("mc.examples", mc.examples, "must be between 0 and mc.n_trials")
+    Parameters
+    ----------
+    cfg : DictConfig
+        A composed config (``hydra`` settings, if present, are not checked).
+
+    Returns
+    -------
+    Config
+        The checked config as dataclasses.
+
+    Raises
+    ------
+    ConfigError
+        On the first bad key: a key the schema does not have (one added
+        with ``+``, which composition accepts) or a value out of range.
+    """
+    cfg = cfg.copy()
+    with open_dict(cfg):
+        cfg.pop("hydra", None)
+    for key in _leaf_keys(cfg):
+        near = unknown_key(key)
+        if near is not None:
+            raise ConfigError(f"{key} is not a config key" + (f"; did you mean {near}?" if near else ""))
+    return OmegaConf.to_object(cfg)

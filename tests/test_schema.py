@@ -61,16 +61,12 @@ def test_fig3_preset_is_the_papers_grid():
         ("scenario.n_landmarks=2", "scenario.n_landmarks"),
         ("mc.n_jobs=0", "mc.n_jobs"),
         ("mc.chunk_size=0", "mc.chunk_size"),
-        ("matcher.objective=max", "matcher.objective"),
         ("matcher.taus=[chi2:2]", "matcher.taus"),
-        ("mc.backend=spark", "mc.backend"),
         ("+scenario.snrdb=30", "scenario.snrdb"),
-        ("scenario.kind=lidar", "scenario.kind"),
         ("scenario.n_landmarks=4 scenario.overlap=0.5", "scenario.overlap"),
         ("scenario.snr_db=inf", "scenario.snr_db"),
         ("scenario.snr_db=2000", r"scenario.snr_db.*must be a number of dB in \[-300, 300\]"),
         ("scenario.aspect=0", "scenario.aspect"),
-        ("scenario.layout=grid", "scenario.layout"),
         ("scenario.p_detect=0", "scenario.p_detect"),
         ("scenario.clutter=-1", "scenario.clutter"),
         ("scenario.anisotropy=nan", "scenario.anisotropy"),
@@ -78,7 +74,6 @@ def test_fig3_preset_is_the_papers_grid():
         ("scenario.aspect=1e300", r"scenario.aspect.*must be in \[0.001, 1000\]"),
         ("scenario.n_landmarks=100000000", r"must keep n_landmarks \* \(1 \+ clutter\) at most 1,000,000"),
         ("scenario.clutter=1e9", r"scenario.n_landmarks=100 is invalid: .* \(clutter 1000000000.0\)"),
-        ("matcher.method=magic", "matcher.method"),
         ("matcher.taus=[]", "matcher.taus"),
         ("matcher.taus=[oracle,oracle]", "matcher.taus"),
         ("mc.n_trials=0", "mc.n_trials"),
@@ -86,13 +81,42 @@ def test_fig3_preset_is_the_papers_grid():
         ("mc.address=tcp://host:8786", "mc.address"),
         ("mc.n_trials=5 mc.examples=6", "mc.examples"),
         ("scenario=victoria_park scenario.cut=0", "scenario.cut"),
-        ("scenario=victoria_park scenario.source=lidar", "scenario.source"),
         ("scenario=victoria_park mc.n_trials=2", "mc.n_trials"),
     ],
 )
 def test_validate_names_the_key(override, key):
     with pytest.raises(ConfigError, match=key):
         validate(compose_config(override.split()))
+
+
+@pytest.mark.parametrize(
+    "override, allowed",
+    [
+        ("matcher.method=papr", "[paper, cyclic, consensus, search, groth, astroalign"),
+        ("matcher.objective=max", "[lr, loglr]"),
+        ("mc.backend=spark", "[loky, dask]"),
+        ("scenario.kind=lidar", "[synthetic, victoria_park]"),
+        ("scenario.layout=grid", "[strip, interleaved]"),
+        ("scenario.source=lidar", "[reference, slam]"),
+    ],
+)
+def test_a_choice_outside_its_values_is_refused_at_composition_with_them_listed(override, allowed):
+    from hydra.errors import ConfigCompositionException
+
+    with pytest.raises(ConfigCompositionException) as info:
+        compose_config([override])
+    key, value = override.split("=")
+    assert f"Invalid value '{value}', expected one of {allowed}" in str(info.value.__cause__)
+    assert f"full_key: {key}" in str(info.value.__cause__)
+
+
+def test_validate_returns_the_typed_config_and_its_range_checks_run_in_the_dataclasses():
+    from experiments.schema import Config, MCConfig, Method
+
+    cfg = validate(compose_config(["matcher.method=consensus"]))
+    assert isinstance(cfg, Config) and cfg.matcher.method is Method.consensus and cfg.matcher.method == "consensus"
+    with pytest.raises(ConfigError, match=r"mc.chunk_size=0 is invalid: must be >= 1"):
+        MCConfig(chunk_size=0)
 
 
 @pytest.mark.parametrize(
