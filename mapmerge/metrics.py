@@ -15,6 +15,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+from scipy.special import chdtri
 
 from .alignment import Alignment, align_pairs, covariance_in_p_frame, rotate, wrap_angle
 from .combining import ONLY_Q
@@ -504,7 +505,10 @@ def group_errors(team, group) -> dict:
         out) and ``strangers_placed`` (counts); ``all_correct`` (every team
         map placed correctly and no stranger placed); ``status`` (per map:
         "correct", "wrong", "unplaced"), ``rot_err_deg`` and ``registration``
-        (per map, NaN unplaced); ``track_purity`` (multi-map tracks holding
+        (per map, NaN unplaced); ``nees`` (per map: the frame error's squared
+        Mahalanobis length under ``frame_cov``, χ²₃ when the covariance is
+        right) and ``beyond_cov`` (placed team maps whose ``nees`` exceeds
+        the χ²₃ bound of tail probability 1e-3); ``track_purity`` (multi-map tracks holding
         one true landmark), ``track_completeness`` (landmarks seen by two or
         more placed team maps whose sightings are all in one track),
         ``duplicates`` (extra tracks of landmarks split over several),
@@ -521,6 +525,7 @@ def group_errors(team, group) -> dict:
     true_t = np.asarray(team.t, dtype=float) - rotate(true_theta, np.broadcast_to(team.t[ref], (N, 1, 2)))[:, 0]
     rot_err = np.full(N, np.nan)
     registration = np.full(N, np.nan)
+    nees = np.full(N, np.nan)
     status = np.where(group.placed, "wrong", "unplaced").astype(object)
     world_to_ref = (lambda x: rotate(team.theta[ref], x) + team.t[ref])
     for i in np.flatnonzero(group.placed):
@@ -531,6 +536,9 @@ def group_errors(team, group) -> dict:
         d = rotate(group.theta[i], x) + group.t[i] - rotate(true_theta[i], x) - true_t[i]
         rot_err[i] = np.degrees(np.abs(wrap_angle(group.theta[i] - true_theta[i])))
         registration[i] = np.sqrt(np.mean(np.sum(d**2, axis=1)) / 2)
+        if i != ref:
+            e = np.concatenate([[wrap_angle(group.theta[i] - true_theta[i])], group.t[i] - true_t[i]])
+            nees[i] = e @ np.linalg.solve(group.frame_cov[i], e)
         if _found(rot_err[i], registration[i], sigma[i]):
             status[i] = "correct"
     if stranger[ref] and group.placed.sum() == 1:
@@ -566,7 +574,8 @@ def group_errors(team, group) -> dict:
         "unplaced": int(np.sum((status == "unplaced") & team_map)),
         "strangers_placed": int(np.sum(group.placed & stranger & (group.placed.sum() > 1))),
         "all_correct": bool(np.all(status[team_map] == "correct") and not np.any(status == "wrong")),
-        "status": list(status), "rot_err_deg": rot_err, "registration": registration,
+        "status": list(status), "rot_err_deg": rot_err, "registration": registration, "nees": nees,
+        "beyond_cov": int(np.sum(nees > chdtri(3, 1e-3))),
         "track_purity": float(np.mean(pure[multi])) if multi.any() else np.nan,
         "track_completeness": float(complete), "duplicates": duplicates,
         "fused_rmse": float(fused), "shared_rmse": float(shared),

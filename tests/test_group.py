@@ -16,7 +16,7 @@ def _true_edges(team, pairs):
     """Edges from the true correspondences, each fitted by the n-point closed form."""
     edges = []
     for i, j in pairs:
-        common, a, b = np.intersect1d(team.ids[i], team.ids[j], return_indices=True)
+        _, a, b = np.intersect1d(team.ids[i], team.ids[j], return_indices=True)
         al = mm.align(team.maps[i][a], team.maps[j][b], team.sigma)
         edges.append(group.Edge(i, j, group.ACCEPTED, al.theta, al.t, al.cov, np.stack([a, b], axis=1)))
     return edges
@@ -97,9 +97,10 @@ def test_unplaced_reference_moves_the_frame_to_the_largest_group():
     assert g.theta[1] == 0 and np.all(g.frame_cov[1] == 0)
 
 
-def test_candidates_keep_the_neighbours_of_a_large_chain():
-    team = mm.simulate.make_group(14, 40, 0.5, 30, topology="chain", rng=0)
-    pairs = group.candidate_pairs(team.maps, np.full(14, team.sigma))
+def test_candidates_keep_the_neighbours_of_a_chain():
+    team = mm.simulate.make_group(14, 100, 0.5, 30, topology="chain", rng=0)
+    assert len(group.candidate_pairs(team.maps, np.full(14, team.sigma))) == 14 * 13 // 2
+    pairs = group.candidate_pairs(team.maps, np.full(14, team.sigma), candidates=3)
     assert len(pairs) < 14 * 13 // 2
     chosen = {tuple(p) for p in pairs.tolist()}
     assert all((i, i + 1) in chosen for i in range(13))
