@@ -23,6 +23,14 @@ Vicon poses, as a robot's noise models would be measured before a mission:
   against the Vicon pose and the surveyed landmark, as robust standard
   deviations (1.4826 x the median absolute deviation): a few sightings are
   misread barcodes metres away and would inflate a plain standard deviation.
+- Systematic landmark error: each landmark's sightings placed from the
+  Vicon poses, their median against the surveyed position, RMS per
+  coordinate over the landmarks. This part of a sighting's error is shared
+  by all of a robot's sightings of one landmark (the camera's range error
+  depends on the landmark and the viewing geometry), so it does not
+  average away; the solve's noise model treats sightings as independent
+  and would report covariances several times too small. Every landmark's
+  covariance gets this variance added (``covs``, ``shape_covs``).
 
 The solve (``solve_robot``), one robot at a time in time order: a pose at
 each time the robot sighted landmarks, and at least every
@@ -67,8 +75,10 @@ LANDMARKS = tuple(range(6, 21))
 CALIBRATION_WINDOW = 1.0
 #: Candidate odometry delays, seconds.
 DELAY_GRID = np.round(np.arange(0.0, 0.61, 0.02), 2)
-#: Longest stretch of odometry, seconds, between two poses of the graph.
+#: Longest stretch of odometry, seconds, between two poses of the graph,
+#: and the shortest gap between a pose added for that and a sighting's pose.
 MAX_POSE_GAP = 1.0
+MIN_POSE_GAP = 0.05
 #: Huber threshold in standard deviations (the usual 95 %-efficiency value).
 HUBER_K = 1.345
 #: Standard deviation of the prior holding the first pose (m, rad).
@@ -135,6 +145,8 @@ class Calibration:
         Robust standard deviations of one sighting (m, rad).
     range_bias, bearing_bias : float
         Median sighting errors (reported, not corrected).
+    landmark_sigma : float
+        Systematic landmark error per coordinate (m), added to every landmark's covariance.
     heading_rms_undelayed : float
         RMS heading error per window without the delay, for comparison (rad).
     windows, sightings : int
@@ -147,6 +159,7 @@ class Calibration:
     bearing_sigma: float
     range_bias: float
     bearing_bias: float
+    landmark_sigma: float
     heading_rms_undelayed: float
     windows: int
     sightings: int
@@ -163,10 +176,12 @@ class MrclamTeam:
     maps : list of (n_i, 2) ndarray
         Each robot's landmarks in the frame of its first pose (m).
     covs : list of (n_i, 2, 2) ndarray
-        Their marginal covariances, first pose held fixed.
+        Their marginal covariances, first pose held fixed, plus the
+        calibrated systematic landmark error (``Calibration.landmark_sigma``).
     shape_covs : list of (n_i, 2, 2) ndarray
         The same with each map's rigid motion removed
-        (``datasets.rigid_free_covariance``): what is left once maps are aligned.
+        (``datasets.rigid_free_covariance``) before the systematic error is
+        added: what is left once maps are aligned, the covariances to merge with.
     ids : list of (n_i,) int ndarray
         Landmark subject numbers (6-20), sorted.
     truth : (21, 2) ndarray
@@ -178,7 +193,7 @@ class MrclamTeam:
         Rigid fit of each map onto the surveyed landmarks by id, in the
         convention map_i ≈ R(θ_i) world + t_i.
     sigma : (N,) ndarray
-        RMS per-coordinate standard deviation of each map's entries (from ``covs``).
+        RMS per-coordinate standard deviation of each map's entries (from ``shape_covs``).
     stranger : (N,) bool ndarray
         All False: every robot drove in the same arena.
     rms : (N,) ndarray
@@ -350,12 +365,31 @@ def calibrate(log: RobotLog, landmarks: np.ndarray) -> Calibration:
     delay = float(DELAY_GRID[int(np.argmin(heading_mse))])
     e = errors(delay)
     range_err, bearing_err = sighting_errors(log, landmarks)
+    pose = vicon_poses(log.groundtruth, log.sightings[:, 0])
+    bearing = pose[:, 2] + log.sightings[:, 3]
+    placed = pose[:, :2] + log.sightings[:, 2:3] * np.column_stack([np.cos(bearing), np.sin(bearing)])
+    subjects = np.unique(log.sightings[:, 1])
+    median = np.array([np.median(placed[log.sightings[:, 1] == s], axis=0) for s in subjects])
+    surveyed = landmarks[np.searchsorted(landmarks[:, 0], subjects), 1:]
     return Calibration(
+        landmark_sigma=float(np.sqrt(np.mean((median - surveyed) ** 2))),
         delay=delay, odometry_sigma=np.sqrt(np.mean(e**2, axis=0) / CALIBRATION_WINDOW),
         range_sigma=_robust_sigma(range_err), bearing_sigma=_robust_sigma(bearing_err),
         range_bias=float(np.median(range_err)), bearing_bias=float(np.median(bearing_err)),
         heading_rms_undelayed=float(np.sqrt(heading_mse[0])), windows=n, sightings=len(range_err),
     )
+
+
+def pose_times(first: float, end: float, sighting_times: np.ndarray) -> np.ndarray:
+    """The graph's pose times: the first pose, every sighting time, and a grid of ``MAX_POSE_GAP``
+    up to ``end``, where a grid time within ``MIN_POSE_GAP`` of another pose is left out (it would
+    add only a nearly zero-length, ill-conditioned step)."""
+    required = np.union1d(sighting_times, [first])
+    grid = np.r_[np.arange(first, end, MAX_POSE_GAP), end]
+    after = np.searchsorted(required, grid)
+    gap = np.minimum(np.abs(grid - required[np.maximum(after - 1, 0)]),
+                     np.abs(required[np.minimum(after, len(required) - 1)] - grid))
+    return np.union1d(required, grid[gap >= MIN_POSE_GAP])
 
 
 def solve_robot(odometry: np.ndarray, sightings: np.ndarray, end_time: float, delay: float,
@@ -387,9 +421,7 @@ def solve_robot(odometry: np.ndarray, sightings: np.ndarray, end_time: float, de
         import gtsam
     except ImportError as exc:
         raise ImportError("the MR.CLAM maps need GTSAM: pip install 'mapmerge[slam]'") from exc
-    first = odometry[0, 0]
-    grid = np.arange(first, end_time, MAX_POSE_GAP)
-    times = np.union1d(np.union1d(grid, sightings[:, 0]), [end_time])
+    times = pose_times(odometry[0, 0], end_time, sightings[:, 0])
     poses = dead_reckon(delayed(odometry, delay), times)
     steps = relative_poses(poses[:-1], poses[1:])
     step_sigma = np.maximum(odometry_sigma[None, :] * np.sqrt(np.diff(times))[:, None], PRIOR_SIGMA)
@@ -500,8 +532,9 @@ def team(path=None, robots=ROBOTS, until_s=None) -> MrclamTeam:
                            cal.odometry_sigma, np.array([cal.bearing_sigma, cal.range_sigma]))
         ids, points, joint = sol["ids"], sol["points"], sol["joint"]
         m = len(ids)
-        covs = joint.reshape(m, 2, m, 2)[np.arange(m), :, np.arange(m), :]
-        shape = rigid_free_covariance(points, joint).reshape(m, 2, m, 2)[np.arange(m), :, np.arange(m), :]
+        floor = cal.landmark_sigma**2 * np.eye(2)
+        covs = joint.reshape(m, 2, m, 2)[np.arange(m), :, np.arange(m), :] + floor
+        shape = rigid_free_covariance(points, joint).reshape(m, 2, m, 2)[np.arange(m), :, np.arange(m), :] + floor
         fit = align_pairs(truth[ids], points, 1.0)  # map ≈ R(θ) world + t
         out["maps"].append(points)
         out["covs"].append(covs)
@@ -510,7 +543,7 @@ def team(path=None, robots=ROBOTS, until_s=None) -> MrclamTeam:
         out["first_poses"].append(vicon_poses(log.groundtruth, np.array([first]))[0])
         out["theta"].append(fit.theta)
         out["t"].append(fit.t)
-        out["sigma"].append(float(np.sqrt(np.mean(np.trace(covs, axis1=1, axis2=2) / 2))))
+        out["sigma"].append(float(np.sqrt(np.mean(np.trace(shape, axis1=1, axis2=2) / 2))))
         out["rms"].append(fit_error(points, truth[ids])["rmse"])
         out["rms_incremental"].append(fit_error(sol["incremental"], truth[ids])["rmse"])
         out["sightings"].append(int(use.sum()))

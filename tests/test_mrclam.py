@@ -47,7 +47,10 @@ def test_maps_are_in_each_robots_first_pose_frame_and_fit_the_surveyed_landmarks
         assert np.all(np.diff(ids) > 0) and ids.min() >= 6 and ids.max() <= 20
         assert not np.any(np.isnan(team.truth[ids])) and np.all(np.isnan(team.truth[:6]))
         assert points.shape == (len(ids), 2) and cov.shape == (len(ids), 2, 2)
-        assert np.all(np.linalg.eigvalsh(cov) > 0) and np.all(np.linalg.eigvalsh(team.shape_covs[i]) > 0)
+        # Positive definite, and at least the calibrated systematic error that sightings do not average away.
+        floor = team.calibrations[i].landmark_sigma ** 2
+        assert floor > 0
+        assert np.all(np.linalg.eigvalsh(cov) >= floor) and np.all(np.linalg.eigvalsh(team.shape_covs[i]) >= floor)
         # The surveyed landmarks seen from the robot's true first pose: a minute of driving drifts little.
         x, y, heading = team.first_poses[i]
         in_robot_frame = (team.truth[ids] - [x, y]) @ mm.rotation(heading)
@@ -108,6 +111,14 @@ def test_thinned_odometry_integrates_to_the_same_motion():
     times = np.linspace(t[0], t[-1], 50)
     full = mrclam.dead_reckon(odometry[np.r_[np.diff(t) > 0, True]], times)
     np.testing.assert_allclose(mrclam.dead_reckon(kept, times), full, atol=1e-12)
+
+
+def test_pose_times_cover_every_sighting_without_near_duplicates():
+    sightings = np.array([0.3, 0.3, 1.02, 2.5, 6.0])
+    times = mrclam.pose_times(0.0, 6.2, sightings)
+    assert np.isin(sightings, times).all() and times[0] == 0.0 and times[-1] == 6.2
+    assert np.diff(times).max() <= mrclam.MAX_POSE_GAP and np.diff(times).min() >= mrclam.MIN_POSE_GAP - 1e-12
+    assert 1.0 not in times  # the grid time 0.02 s before a sighting is left out
 
 
 @pytest.mark.parametrize("kwargs, message", [
