@@ -9,12 +9,12 @@ $(PY):
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 
-# The paper's figures need only the package itself.
+# The paper's figures need the harness (Hydra, pandas, pyarrow, matplotlib, ...), an extra of the package.
 $(VENV)/.paper: pyproject.toml | $(PY)
-	$(PY) -m pip install --quiet -e .
+	$(PY) -m pip install --quiet -e '.[harness]'
 	touch $@
 
-# The tests also exercise the optional extras (dask, astroalign, GTSAM).
+# The tests also exercise the optional extras (harness, OR-Tools, dask, astroalign, GTSAM).
 $(VENV)/.test: pyproject.toml | $(PY)
 	$(PY) -m pip install --quiet -e '.[test]'
 	touch $@

@@ -191,8 +191,14 @@ def assign_sparse(log_lr: np.ndarray, pairs: np.ndarray, shape, objective: str =
     ------
     RuntimeError
         If the flow solver fails (it does not on these graphs).
+    ImportError
+        Without OR-Tools (the extra ``[large]``).
     """
-    from ortools.graph.python import min_cost_flow  # imported here: only large maps take this path
+    try:
+        from ortools.graph.python import min_cost_flow  # imported here: only large maps take this path
+    except ImportError:
+        raise ImportError("the LP of large maps (a min-cost flow) needs OR-Tools: "
+                          "pip install 'mapmerge[large]'") from None
 
     check_objective(objective)
     n_p, n_q = shape

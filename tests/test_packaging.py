@@ -76,9 +76,47 @@ def test_a_wheel_installs_and_runs_a_sweep_from_elsewhere(tmp_path):
 def test_import_mapmerge_leaves_heavy_modules_for_the_functions_that_need_them():
     # scipy.signal (about a second) serves only the exhaustive detector, pandas only map files:
     # a user's `import mapmerge` and every `mapmerge merge` call would pay for them otherwise.
-    code = "import sys, mapmerge; print(sorted(m for m in ('scipy.signal', 'pandas') if m in sys.modules))"
+    # OR-Tools, matplotlib and the harness's packages are extras: the core install has none of them.
+    heavy = ("scipy.signal", "pandas", "ortools", "matplotlib", "hydra", "pyarrow")
+    code = f"import sys, mapmerge; print(sorted(m for m in {heavy} if m in sys.modules))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
+
+
+#: Run the rest of the program as if only the core dependencies were installed.
+_CORE_ONLY = """
+import sys
+class NotInstalled:
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in {"ortools", "matplotlib", "hydra", "omegaconf", "pyarrow", "tqdm", "astroalign"}:
+            raise ModuleNotFoundError(f"No module named {name!r}")
+sys.meta_path.insert(0, NotInstalled())
+"""
+
+
+def test_the_core_install_merges_map_files_and_names_the_extra_it_lacks(tmp_path):
+    import numpy as np
+
+    import mapmerge as mm
+
+    for n, name in ((40, "small"), (400, "large")):
+        sc = mm.simulate.make_pair(n, 0.75, 30, rng=0)
+        for side, points in (("a", sc.p), ("b", sc.q)):
+            np.savetxt(tmp_path / f"{name}_{side}.csv", points, delimiter=",", header="x,y", comments="")
+
+    def merge(name, *options):
+        code = _CORE_ONLY + "from mapmerge.cli import main; sys.exit(main(sys.argv[1:]))"
+        return subprocess.run([sys.executable, "-c", code, "merge", f"{name}_a.csv", f"{name}_b.csv",
+                               "--sigma", f"{sc.sigma}", "-o", f"{name}.csv", *options], cwd=tmp_path,
+                              capture_output=True, text=True)
+
+    proc = merge("small")
+    assert proc.returncode == 0 and "matched" in proc.stdout, proc.stderr
+    assert len((tmp_path / "small.csv").read_text().splitlines()) == 1 + 50  # 30 fused, 10 + 10 unshared
+    # The paper method's LP on large maps is OR-Tools' min-cost flow: the extra [large].
+    proc = merge("large", "--method", "paper")
+    assert proc.returncode == 2 and proc.stderr.strip() == (
+        "mapmerge: error: the LP of large maps (a min-cost flow) needs OR-Tools: pip install 'mapmerge[large]'")
 
 
 def test_every_module_is_an_attribute_of_the_package():
