@@ -7,7 +7,10 @@
 
 Pairs already in ``pairs.csv`` are not computed again (each pair depends on
 its seed alone), so an interrupted or extended run resumes, and a rerun
-only rebuilds the tables.
+only rebuilds the tables. Each row carries the digest of the code, numpy's
+and scipy's versions and the machine's arithmetic that computed it
+(``code``): a row written by other code (or before rows carried one) is
+computed again.
 
 Per layout (strip; interleaved with p_detect 0.9) and SNR, on the paper's
 Fig. 1 scenario (100 landmarks per map, 75 % common; ``--landmarks`` for
@@ -52,7 +55,10 @@ the accuracy of its transform, not detection.
 from __future__ import annotations
 
 import argparse
+import functools
+import hashlib
 import itertools
+import json
 import time
 from pathlib import Path
 
@@ -64,6 +70,7 @@ import mapmerge as mm
 from mapmerge.consensus import SHARED_RANGE
 
 from .aggregate import ratio, save_table
+from .trials import arithmetic_digest, code_digest, library_versions
 
 SNRS = tuple(np.arange(0.0, 17.51, 2.5))
 LAYOUTS = ("strip", "interleaved")
@@ -138,7 +145,17 @@ def null_threshold(null: np.ndarray) -> float:
 
 
 JOB = ["n_landmarks", "layout", "snr_db", "seed", "unrelated"]
-COLUMNS = JOB + [column for _, columns in MEASURES for column in columns]
+#: The column of ``pairs.csv`` naming the code that computed a row (``code_key``).
+CODE = "code"
+COLUMNS = JOB + [column for _, columns in MEASURES for column in columns] + [CODE]
+
+
+@functools.cache
+def code_key() -> str:
+    """What a pair's measures depend on besides the pair: the library's and this module's code,
+    numpy's and scipy's versions, and the machine's arithmetic (12 hex digits)."""
+    key = {"code": code_digest(__file__), "libraries": library_versions(), "arithmetic": arithmetic_digest()}
+    return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:12]
 
 
 def cell_jobs(n: int, layout: str, snr: float, trials: int) -> list[tuple]:
@@ -158,15 +175,17 @@ def run_pairs(trials: int, n_jobs: int, path: Path, snrs=SNRS, layouts=LAYOUTS, 
     """Every measure of every null and related pair: one row each, in job order.
 
     ``path`` (``pairs.csv``) is read first and rewritten after each cell
-    computed: measures it already holds are not computed again, and its
+    computed: measures it already holds are not computed again, unless
+    other code wrote them (their ``code`` is not ``code_key()``), and its
     rows of other pairs (e.g. of a run with more trials) are kept.
     """
-    known: dict[tuple, dict] = {}
+    known: dict[tuple, dict] = {}  # rows of this code
+    other: dict[tuple, dict] = {}  # rows of other code: kept in the file until their pair is computed
     if path.is_file():
         old = _read(path)
-        known = {job: {k: v for k, v in row.items() if not pd.isna(v)}
-                 for job, row in zip(old[JOB].itertuples(index=False, name=None),
-                                     old.drop(columns=JOB).to_dict("records"))}
+        for job, row in zip(old[JOB].itertuples(index=False, name=None), old.drop(columns=JOB).to_dict("records")):
+            values = {k: v for k, v in row.items() if not pd.isna(v)}
+            (known if values.get(CODE) == code_key() else other)[job] = values
     jobs = []
     for n, layout, snr in itertools.product(landmarks, layouts, snrs):
         cell = cell_jobs(n, layout, snr, trials)
@@ -175,13 +194,14 @@ def run_pairs(trials: int, n_jobs: int, path: Path, snrs=SNRS, layouts=LAYOUTS, 
             todo = [job for job in cell if not set(columns) <= known.get(job, {}).keys()]
             out = Parallel(n_jobs=n_jobs, batch_size=4)(delayed(measure)(*job) for job in todo)
             for job, values in zip(todo, out):
-                known.setdefault(job, {}).update(zip(columns, values))
+                known.setdefault(job, {CODE: code_key()}).update(zip(columns, values))
             changed |= bool(todo)
         jobs += cell
         if changed:
+            rows = {**other, **known}
             listed = set(jobs)
-            order = jobs + [job for job in known if job not in listed]
-            table = pd.DataFrame([{**dict(zip(JOB, job)), **known[job]} for job in order], columns=COLUMNS)
+            order = jobs + [job for job in rows if job not in listed]
+            table = pd.DataFrame([{**dict(zip(JOB, job)), **rows[job]} for job in order], columns=COLUMNS)
             table.to_csv(path, index=False, float_format="%.10g")  # seconds: its one machine-dependent column
     # The table is built from the file's values, so a resumed run gives the same table as a fresh one.
     return pd.DataFrame(jobs, columns=JOB).merge(_read(path), on=JOB, how="left", validate="one_to_one")

@@ -72,10 +72,11 @@ def _write_table_atomic(table, path: Path) -> None:
 
 
 def _run_key(cfg: DictConfig) -> str:
-    """Hash of everything that determines the trials' content, the code and the machine's
-    arithmetic included (a chunk left by an older version of the library, or computed where
-    numpy's transcendental functions give other bits, is never reused)."""
-    from .trials import arithmetic_digest, code_digest
+    """Hash of everything that determines the trials' content, the code, numpy's and scipy's
+    versions and the machine's arithmetic included (a chunk left by an older version of the
+    library or of numpy or scipy, or computed where numpy's transcendental functions give other
+    bits, is never reused)."""
+    from .trials import arithmetic_digest, code_digest, library_versions
 
     key = {
         "scenario": OmegaConf.to_container(cfg.scenario, enum_to_str=True),
@@ -83,6 +84,7 @@ def _run_key(cfg: DictConfig) -> str:
         "seed": cfg.mc.seed,
         "code": code_digest(),
         "arithmetic": arithmetic_digest(),
+        "libraries": library_versions(),
     }
     return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:12]
 

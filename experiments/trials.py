@@ -49,14 +49,22 @@ MAX_PAIRS = 2**22
 
 
 @functools.cache
-def code_digest() -> str:
-    """Digest of the sources that compute trials (the library and this module):
-    part of the harness's chunk-cache key."""
-    files = sorted(Path(mm.__file__).resolve().parent.rglob("*.py")) + [Path(__file__).resolve()]
+def code_digest(module: str = __file__) -> str:
+    """Digest of the sources that compute results: the library and ``module`` (by default this
+    one, whose trials the harness's chunk cache holds)."""
+    files = sorted(Path(mm.__file__).resolve().parent.rglob("*.py")) + [Path(module).resolve()]
     digest = hashlib.sha256()
     for path in files:
         digest.update(path.read_bytes())
     return digest.hexdigest()
+
+
+def library_versions() -> dict[str, str]:
+    """numpy's and scipy's versions: part of the cache keys, since another release of either may
+    give other bits (a Delaunay triangulation, a random stream, a transcendental function)."""
+    import scipy
+
+    return {"numpy": np.__version__, "scipy": scipy.__version__}
 
 
 @functools.cache

@@ -61,8 +61,9 @@ def test_run_summaries_follow_the_run_and_aggregate_as_its_trials(tmp_path):
 
 
 @pytest.mark.parametrize("digest_name, other", [("code_digest", "another version of the library"),
-                                                 ("arithmetic_digest", "AVX-512 kernels")])
-def test_chunks_of_other_code_or_arithmetic_are_not_reused(tmp_path, monkeypatch, digest_name, other):
+                                                 ("arithmetic_digest", "AVX-512 kernels"),
+                                                 ("library_versions", {"numpy": "2.0.0", "scipy": "1.13.0"})])
+def test_chunks_of_other_code_libraries_or_arithmetic_are_not_reused(tmp_path, monkeypatch, digest_name, other):
     # One process: the patched digest must also be the workers' (see the next test).
     out = run(small(n_jobs=1), tmp_path).parent
     before = set((out / "chunks").glob("*.trials.parquet"))
