@@ -25,7 +25,7 @@ import numpy as np
 from . import consensus, search
 from ._validation import (check_covariances, check_finite, check_geometry, check_points, check_rng, check_sigma,
                           check_sigma_range, float_array)
-from .alignment import wrap_angle
+from .alignment import rotation, wrap_angle
 from .baselines import astroalign as astroalign_baseline
 from .baselines import groth as groth_baseline
 from .matching import TriangleMatch, check_objective, match_triangles, resolve_correspondences, resolve_log_tau
@@ -390,3 +390,79 @@ def residual_match(P, Q, result: MergeResult, sigma=None, tau=DEFAULT_TAU, cov_p
         return none
     pairs = np.stack([rest_p[second.pairs[:, 0]], rest_q[second.pairs[:, 1]]], axis=1)
     return ResidualMatch(True, second.theta, second.t, pairs, float(wrap_angle(second.theta - result.theta)))
+
+
+#: ``rigid_check`` flags a merge when a landmark pair lies farther from the fitted motion than a correct
+#: merge's pairs would with this probability, all pairs together (Bonferroni over the K pairs).
+RIGID_CHECK_P = 0.01
+#: Methods without an acceptance test of their own: ``rigid_check`` is the only check of their merges.
+UNTESTED_METHODS = ("paper", "cyclic", "groth", "astroalign")
+
+
+@dataclass(frozen=True)
+class RigidCheck:
+    """Whether a merge's landmark pairs agree on its one rigid motion (``rigid_check``).
+
+    Attributes
+    ----------
+    agree : bool
+        No pair beyond ``bound``.
+    n_outliers : int
+        Pairs whose normalised squared residual exceeds ``bound``.
+    bound : float
+        The χ²₂ quantile every pair of a correct merge stays below with probability 1 - ``RIGID_CHECK_P``:
+        ``2 log(K / RIGID_CHECK_P)``.
+    max_stat : float
+        The largest normalised squared residual (χ²₂ for a true pair).
+    """
+
+    agree: bool
+    n_outliers: int
+    bound: float
+    max_stat: float
+
+
+def rigid_check(P, Q, result: MergeResult, sigma=None, cov_p=None, cov_q=None) -> RigidCheck:
+    """Test a matched merge's landmark pairs against its fitted rigid motion.
+
+    Each pair's residual ``d = q_j - (R(θ) p_i + t)`` has, for a true pair,
+    covariance ``Σ_q,j + R Σ_p,i Rᵀ`` (``2σ² I`` without covariances), so
+    ``dᵀ Σ⁻¹ d`` is about χ²₂ (a little smaller: the fit absorbs 3 of the 2K
+    degrees of freedom). A wrong pair, or a match that is wrong as a whole,
+    leaves residuals far beyond the bound. ``consensus`` and ``search``
+    accept only matches that pass a stricter test; for the methods in
+    ``UNTESTED_METHODS`` this is the only sign of a wrong merge.
+
+    Parameters
+    ----------
+    P, Q : (n, 2) array_like
+        The maps ``result`` merged.
+    result : MergeResult
+        A matched merge of ``P`` and ``Q``.
+    sigma, cov_p, cov_q
+        As for ``merge_maps``.
+
+    Returns
+    -------
+    RigidCheck
+
+    Raises
+    ------
+    ValueError
+        As ``residual_match``: invalid maps, σ or covariances, or a ``result`` that is not a matched merge
+        of maps this size.
+    """
+    P, Q, sigma, cov_p, cov_q = _check_pair(P, Q, sigma, cov_p, cov_q)
+    if not isinstance(result, MergeResult) or not result.matched:
+        raise ValueError("result must be a matched MergeResult of merge_maps(P, Q, ...)")
+    if np.any(result.pairs[:, 0] >= len(P)) or np.any(result.pairs[:, 1] >= len(Q)):
+        raise ValueError("result pairs rows beyond P or Q; pass the maps it merged")
+    i, j = result.pairs[:, 0], result.pairs[:, 1]
+    R = rotation(result.theta)
+    d = Q[j] - (P[i] @ R.T + result.t)
+    cov = (np.full(len(i), 2 * sigma**2)[:, None, None] * np.eye(2) if cov_p is None
+           else cov_q[j] + R @ cov_p[i] @ R.T)
+    stat = np.einsum("ki,kij,kj->k", d, np.linalg.inv(cov), d)
+    bound = float(2 * np.log(len(i) / RIGID_CHECK_P))
+    outliers = int(np.sum(stat > bound))
+    return RigidCheck(outliers == 0, outliers, bound, float(stat.max(initial=0.0)))

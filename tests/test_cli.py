@@ -1,6 +1,7 @@
 """The mapmerge command and the map-file reader, end to end on files written here."""
 
 import json
+import re
 import subprocess
 import sys
 
@@ -246,3 +247,79 @@ def test_write_map_names_what_is_not_the_merge_or_its_maps(tmp_path):
     with pytest.raises(ValueError, match="map_q must be the LandmarkMap .* merged as q, with at least 30 rows"):
         mm.write_map(res, tmp_path / "m.csv", map_p, mm.read_map(pd.read_csv(b, sep="\t").head(5)))
     assert pd.read_csv(mm.write_map(res, tmp_path / "m.csv", map_p, map_q)).id_q.notna().any()
+
+
+def _scaled_maps(tmp_path, scale):
+    a, b, _ = _maps(tmp_path)
+    q = pd.read_csv(b, sep="\t")
+    q[["x", "y"]] *= scale
+    scaled = tmp_path / "b_scaled.csv"
+    q.to_csv(scaled, index=False)
+    return a, scaled
+
+
+def test_maps_in_different_units_warn_and_strict_refuses(tmp_path, capsys):
+    """Map b in millimetres, map a in metres: a warning saying by how much; --strict makes it exit 2."""
+    a, b = _scaled_maps(tmp_path, 1000.0)
+    args = ["merge", str(a), str(b), "--sigma", "0.02", "-o", str(tmp_path / "m.csv")]
+    assert main(args) == 1
+    err = capsys.readouterr().err
+    assert re.search(r"warning: map b's landmarks are spaced 1,\d{3}x map a's \(median nearest-neighbour "
+                     r"distance \d+ against 0\.\d+\): are both in the same units\?", err)
+    assert main([*args, "--strict"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("mapmerge: error: map b's") and err[0].endswith("(refused: --strict)")
+    # Within the factor: no warning (a's spacing against b's at 1.5x).
+    a, b = _scaled_maps(tmp_path, 1.5)
+    main(["merge", str(a), str(b), "--sigma", "0.02", "-o", str(tmp_path / "m.csv"), "--strict"])
+    assert "warning" not in capsys.readouterr().err
+
+
+def test_an_unexpected_error_is_one_bug_report_line_and_exit_3(tmp_path, capsys, monkeypatch):
+    a, b, _ = _maps(tmp_path)
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("something the code did not expect\nsecond line")
+
+    monkeypatch.setattr(mm.cli, "merge_maps", broken)
+    assert main(["merge", str(a), str(b), "--sigma", "0.02", "-o", str(tmp_path / "m.csv")]) == mm.cli.EXIT_BUG == 3
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "internal error (RuntimeError: something the code did not expect)" in err
+    assert "please report it" in err and "Traceback" not in err
+
+
+def test_a_wrong_paper_merge_is_flagged_and_json_names_its_units(tmp_path, capsys):
+    """On the paper's 100-landmark scenario ``paper`` pairs wrong landmarks (README): its pairs then
+    disagree with its one rigid motion, which the command says; ``consensus`` on the same maps does not."""
+    sc = mm.simulate.make_pair(100, 0.75, 30, rng=0)
+    a, b = tmp_path / "a.csv", tmp_path / "b.csv"
+    pd.DataFrame(sc.p, columns=["x", "y"]).to_csv(a, index=False)
+    pd.DataFrame(sc.q, columns=["x", "y"]).to_csv(b, index=False)
+    args = ["merge", str(a), str(b), "--sigma", repr(sc.sigma), "-o", str(tmp_path / "m.csv"), "--json"]
+    assert main([*args, "--method", "paper"]) == 0
+    out, err = capsys.readouterr()
+    info = json.loads(out)
+    assert not info["rigid_check"]["agree"] and info["rigid_check"]["outliers"] >= 1
+    assert "lie off its rigid motion, beyond the chi-square bound" in err and "paper has no acceptance test" in err
+    assert info["warnings"] == [err.strip()[len("warning: "):]]
+    assert main(args) == 0
+    out, err = capsys.readouterr()
+    info = json.loads(out)
+    assert err == "" and info["warnings"] == [] and info["rigid_check"]["agree"]
+    assert info["theta_deg"] == pytest.approx(np.degrees(info["theta"]))
+    assert info["theta_std_deg"] == pytest.approx(np.degrees(info["theta_std"]))
+    assert info["units"]["theta"] == "rad" and info["units"]["theta_deg"] == "deg" and info["units"]["t"] == "map units"
+
+
+@pytest.mark.parametrize("value, std, text", [
+    (-59.46648, 0.02521, "-59.466 ± 0.025"),
+    (60.4123, 1.7, "60.4 ± 1.7"),
+    (12.3456789, 0.00012, "12.34568 ± 0.00012"),  # a map in km, to 12 cm
+    (123456.7, 1700.0, "123457 ± 1.7e+03"),
+    (1234567.891234, 0.0123, "1234567.891 ± 0.012"),  # a map in µm-scale units
+    (1.234567e48, 3e44, "1.23457e+48 ± 3.0e+44"),
+    (-3.2e-20, 1e-24, "-3.20000e-20 ± 1.0e-24"),
+    (2.5, 0.0, "2.5 ± 0"),
+])
+def test_numbers_are_printed_to_the_digits_their_uncertainty_supports(value, std, text):
+    assert mm.cli.with_std(value, std) == text
