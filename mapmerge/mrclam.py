@@ -41,7 +41,12 @@ behind GTSAM's Huber M-estimator (``HUBER_K``), against misread barcodes;
 a landmark seen for the first time is placed from that sighting. iSAM2
 updates after every pose; at the end a batch Levenberg-Marquardt
 refinement starting from the incremental estimate is kept if it lowers the
-graph's error. The first pose is held fixed (prior ``PRIOR_SIGMA``), so the
+graph's error. The Huber kernel bounds a misread sighting's pull but does
+not remove it, and a few dozen misreads (a barcode read as another
+landmark's, metres away) bend a whole map: sightings whose range or
+bearing error at the solution exceeds ``REJECTION_GATE`` calibrated
+standard deviations are dropped and the batch solve is rerun (up to
+``REJECTION_ROUNDS`` times). The first pose is held fixed (prior ``PRIOR_SIGMA``), so the
 map and its per-landmark marginal covariances are in the frame of the
 robot's first pose. Sightings of other robots (subjects 1-5) are not used.
 
@@ -86,8 +91,20 @@ PRIOR_SIGMA = 1e-6
 #: iSAM2's relinearisation (GTSAM's defaults).
 RELINEARIZE_THRESHOLD = 0.1
 RELINEARIZE_SKIP = 10
-#: Solver version, part of the cache key through the arguments of ``solve_robot``.
-SOLVER_VERSION = 1
+#: After the solve, sightings whose range or bearing error exceeds this many
+#: calibrated standard deviations are dropped and the batch solve rerun, up
+#: to ``REJECTION_ROUNDS`` times.
+REJECTION_GATE = 5.0
+REJECTION_ROUNDS = 3
+
+
+def solver_settings() -> dict:
+    """The solver's tunables (the module constants above, read when called), passed to ``solve_robot``
+    so that the on-disk cache is keyed by them."""
+    return {"max_pose_gap": MAX_POSE_GAP, "min_pose_gap": MIN_POSE_GAP, "huber_k": HUBER_K,
+            "prior_sigma": PRIOR_SIGMA, "relinearize_threshold": RELINEARIZE_THRESHOLD,
+            "relinearize_skip": RELINEARIZE_SKIP, "rejection_gate": REJECTION_GATE,
+            "rejection_rounds": REJECTION_ROUNDS}
 #: The MAD of a normal sample is this many times smaller than its standard deviation.
 MAD_TO_SIGMA = 1.4826
 
@@ -201,7 +218,9 @@ class MrclamTeam:
     rms_incremental : (N,) ndarray
         The same for the iSAM2 estimate before the batch refinement.
     sightings : (N,) int ndarray
-        Landmark sightings each map was built from.
+        Landmark sightings in each robot's time span.
+    rejected : (N,) int ndarray
+        Of them, those the solve dropped as misread (``REJECTION_GATE``).
     calibrations : tuple of Calibration
     until_s : float or None
     """
@@ -220,6 +239,7 @@ class MrclamTeam:
     rms: np.ndarray
     rms_incremental: np.ndarray
     sightings: np.ndarray
+    rejected: np.ndarray
     calibrations: tuple
     until_s: float | None
 
@@ -343,15 +363,18 @@ def _robust_sigma(e: np.ndarray) -> float:
     return float(MAD_TO_SIGMA * np.median(np.abs(e - np.median(e))))
 
 
-def calibrate(log: RobotLog, landmarks: np.ndarray) -> Calibration:
-    """Measure one robot's odometry delay and noise models against the Vicon poses (module docstring)."""
+def calibrate(log: RobotLog, landmarks: np.ndarray, window: float = CALIBRATION_WINDOW,
+              delays: np.ndarray = DELAY_GRID) -> Calibration:
+    """Measure one robot's odometry delay and noise models against the Vicon poses (module docstring).
+
+    ``window`` (s) and ``delays`` (s) default to ``CALIBRATION_WINDOW`` and ``DELAY_GRID``."""
     odo = log.odometry
-    start = np.arange(odo[0, 0], odo[-1, 0] - CALIBRATION_WINDOW, CALIBRATION_WINDOW)
+    start = np.arange(odo[0, 0], odo[-1, 0] - window, window)
     n = len(start)
     if n < 10 or len(log.sightings) < 10:
         raise DatasetError(f"robot {log.robot}: too little data to calibrate ({n} odometry windows, "
                            f"{len(log.sightings)} landmark sightings)")
-    times = np.r_[start, start + CALIBRATION_WINDOW]
+    times = np.r_[start, start + window]
     truth = vicon_poses(log.groundtruth, times)
     true_motion = relative_poses(truth[:n], truth[n:])
 
@@ -361,8 +384,8 @@ def calibrate(log: RobotLog, landmarks: np.ndarray) -> Calibration:
         e[:, 2] = wrap_angle(e[:, 2])
         return e
 
-    heading_mse = [np.mean(errors(d)[:, 2] ** 2) for d in DELAY_GRID]
-    delay = float(DELAY_GRID[int(np.argmin(heading_mse))])
+    heading_mse = [np.mean(errors(d)[:, 2] ** 2) for d in delays]
+    delay = float(delays[int(np.argmin(heading_mse))])
     e = errors(delay)
     range_err, bearing_err = sighting_errors(log, landmarks)
     pose = vicon_poses(log.groundtruth, log.sightings[:, 0])
@@ -373,27 +396,28 @@ def calibrate(log: RobotLog, landmarks: np.ndarray) -> Calibration:
     surveyed = landmarks[np.searchsorted(landmarks[:, 0], subjects), 1:]
     return Calibration(
         landmark_sigma=float(np.sqrt(np.mean((median - surveyed) ** 2))),
-        delay=delay, odometry_sigma=np.sqrt(np.mean(e**2, axis=0) / CALIBRATION_WINDOW),
+        delay=delay, odometry_sigma=np.sqrt(np.mean(e**2, axis=0) / window),
         range_sigma=_robust_sigma(range_err), bearing_sigma=_robust_sigma(bearing_err),
         range_bias=float(np.median(range_err)), bearing_bias=float(np.median(bearing_err)),
         heading_rms_undelayed=float(np.sqrt(heading_mse[0])), windows=n, sightings=len(range_err),
     )
 
 
-def pose_times(first: float, end: float, sighting_times: np.ndarray) -> np.ndarray:
+def pose_times(first: float, end: float, sighting_times: np.ndarray, max_gap: float = MAX_POSE_GAP,
+               min_gap: float = MIN_POSE_GAP) -> np.ndarray:
     """The graph's pose times: the first pose, every sighting time, and a grid of ``MAX_POSE_GAP``
     up to ``end``, where a grid time within ``MIN_POSE_GAP`` of another pose is left out (it would
     add only a nearly zero-length, ill-conditioned step)."""
     required = np.union1d(sighting_times, [first])
-    grid = np.r_[np.arange(first, end, MAX_POSE_GAP), end]
+    grid = np.r_[np.arange(first, end, max_gap), end]
     after = np.searchsorted(required, grid)
     gap = np.minimum(np.abs(grid - required[np.maximum(after - 1, 0)]),
                      np.abs(required[np.minimum(after, len(required) - 1)] - grid))
-    return np.union1d(required, grid[gap >= MIN_POSE_GAP])
+    return np.union1d(required, grid[gap >= min_gap])
 
 
 def solve_robot(odometry: np.ndarray, sightings: np.ndarray, end_time: float, delay: float,
-                odometry_sigma: np.ndarray, sighting_sigma: np.ndarray, version: int = SOLVER_VERSION) -> dict:
+                odometry_sigma: np.ndarray, sighting_sigma: np.ndarray, settings: dict) -> dict:
     """One robot's landmark map by iSAM2 (then a batch refinement), in the frame of its first pose.
 
     Parameters
@@ -407,8 +431,8 @@ def solve_robot(odometry: np.ndarray, sightings: np.ndarray, end_time: float, de
     delay, odometry_sigma, sighting_sigma
         The calibration: delay (s), (forward, lateral, heading) σ per √s,
         (bearing, range) σ of one sighting.
-    version : int
-        Part of the cache key.
+    settings : dict
+        The tunables, ``solver_settings()``.
 
     Returns
     -------
@@ -421,10 +445,10 @@ def solve_robot(odometry: np.ndarray, sightings: np.ndarray, end_time: float, de
         import gtsam
     except ImportError as exc:
         raise ImportError("the MR.CLAM maps need GTSAM: pip install 'mapmerge[slam]'") from exc
-    times = pose_times(odometry[0, 0], end_time, sightings[:, 0])
+    times = pose_times(odometry[0, 0], end_time, sightings[:, 0], settings["max_pose_gap"], settings["min_pose_gap"])
     poses = dead_reckon(delayed(odometry, delay), times)
     steps = relative_poses(poses[:-1], poses[1:])
-    step_sigma = np.maximum(odometry_sigma[None, :] * np.sqrt(np.diff(times))[:, None], PRIOR_SIGMA)
+    step_sigma = np.maximum(odometry_sigma[None, :] * np.sqrt(np.diff(times))[:, None], settings["prior_sigma"])
     at_pose = np.searchsorted(times, sightings[:, 0])
     by_pose = np.searchsorted(at_pose, np.arange(len(times) + 1))
 
@@ -434,28 +458,32 @@ def solve_robot(odometry: np.ndarray, sightings: np.ndarray, end_time: float, de
     def landmark_key(subject):
         return gtsam.symbol("l", int(subject))
 
-    sighting_noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(HUBER_K),
+    sighting_noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(settings["huber_k"]),
                                                     gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sighting_sigma, float)))
     params = gtsam.ISAM2Params()
-    params.setRelinearizeThreshold(RELINEARIZE_THRESHOLD)
-    params.relinearizeSkip = RELINEARIZE_SKIP
+    params.setRelinearizeThreshold(settings["relinearize_threshold"])
+    params.relinearizeSkip = settings["relinearize_skip"]
     isam = gtsam.ISAM2(params)
     full = gtsam.NonlinearFactorGraph()
+    motion, seen = [], []  # the prior and odometry factors; the sighting factors in the sightings' order
     placed: list[int] = []
     current = gtsam.Pose2()
     for i in range(len(times)):
         new, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         if i == 0:
-            new.add(gtsam.PriorFactorPose2(pose_key(0), current, gtsam.noiseModel.Isotropic.Sigma(3, PRIOR_SIGMA)))
+            motion.append(gtsam.PriorFactorPose2(pose_key(0), current,
+                                                 gtsam.noiseModel.Isotropic.Sigma(3, settings["prior_sigma"])))
         else:
             step = gtsam.Pose2(*steps[i - 1])
-            new.add(gtsam.BetweenFactorPose2(pose_key(i - 1), pose_key(i), step,
-                                             gtsam.noiseModel.Diagonal.Sigmas(step_sigma[i - 1])))
+            motion.append(gtsam.BetweenFactorPose2(pose_key(i - 1), pose_key(i), step,
+                                                   gtsam.noiseModel.Diagonal.Sigmas(step_sigma[i - 1])))
             current = current.compose(step)
+        new.add(motion[-1])
         values.insert(pose_key(i), current)
         for _, subject, rng, bearing in sightings[by_pose[i]:by_pose[i + 1]]:
-            new.add(gtsam.BearingRangeFactor2D(pose_key(i), landmark_key(subject), gtsam.Rot2(bearing), rng,
-                                               sighting_noise))
+            seen.append(gtsam.BearingRangeFactor2D(pose_key(i), landmark_key(subject), gtsam.Rot2(bearing), rng,
+                                                   sighting_noise))
+            new.add(seen[-1])
             if int(subject) not in placed:
                 placed.append(int(subject))
                 values.insert(landmark_key(subject),
@@ -466,7 +494,24 @@ def solve_robot(odometry: np.ndarray, sightings: np.ndarray, end_time: float, de
     estimate = isam.calculateEstimate()
     refined = gtsam.LevenbergMarquardtOptimizer(full, estimate).optimize()
     solution = refined if full.error(refined) < full.error(estimate) else estimate
-    ids = np.array(sorted(placed), dtype=np.int64)
+    # Misread barcodes put a sighting metres from its landmark; the Huber kernel only bounds their pull.
+    keep = np.ones(len(seen), bool)
+    for _ in range(settings["rejection_rounds"]):
+        error = np.array([f.unwhitenedError(solution) for f in seen]).reshape(-1, 2)
+        bad = keep & np.any(np.abs(error) > settings["rejection_gate"] * np.asarray(sighting_sigma, float), axis=1)
+        if not bad.any():
+            break
+        keep &= ~bad
+        full = gtsam.NonlinearFactorGraph()
+        for factor in motion + [f for f, k in zip(seen, keep) if k]:
+            full.add(factor)
+        start = gtsam.Values()
+        for i in range(len(times)):
+            start.insert(pose_key(i), solution.atPose2(pose_key(i)))
+        for subject in np.unique(sightings[keep, 1]):
+            start.insert(landmark_key(subject), solution.atPoint2(landmark_key(subject)))
+        solution = gtsam.LevenbergMarquardtOptimizer(full, start).optimize()
+    ids = np.unique(sightings[keep, 1]).astype(np.int64)
     keys = gtsam.KeyVector()
     for subject in ids:
         keys.append(landmark_key(subject))
@@ -478,6 +523,7 @@ def solve_robot(odometry: np.ndarray, sightings: np.ndarray, end_time: float, de
         "incremental": np.array([estimate.atPoint2(landmark_key(s)) for s in ids]).reshape(-1, 2),
         "joint": joint,
         "poses": len(times),
+        "rejected": int(np.sum(~keep)),
     }
 
 
@@ -518,10 +564,10 @@ def team(path=None, robots=ROBOTS, until_s=None) -> MrclamTeam:
     truth = np.full((max(LANDMARKS) + 1, 2), np.nan)
     truth[recording.landmarks[:, 0].astype(int)] = recording.landmarks[:, 1:]
     out = {name: [] for name in ("maps", "covs", "shape_covs", "ids", "first_poses", "theta", "t", "sigma",
-                                 "rms", "rms_incremental", "sightings", "calibrations")}
+                                 "rms", "rms_incremental", "sightings", "rejected", "calibrations")}
     for k in robots:
         log = recording.robots[k]
-        cal = cached_calibrate(log, recording.landmarks)
+        cal = cached_calibrate(log, recording.landmarks, CALIBRATION_WINDOW, DELAY_GRID)
         first = log.odometry[0, 0]
         end = log.odometry[-1, 0] if until_s is None else min(log.odometry[-1, 0], recording.start + until_s)
         use = (log.sightings[:, 0] >= first) & (log.sightings[:, 0] <= end)
@@ -529,7 +575,7 @@ def team(path=None, robots=ROBOTS, until_s=None) -> MrclamTeam:
             raise ValueError(f"until_s={until_s} leaves robot {k} with fewer than 2 landmarks sighted: "
                              "choose a longer time")
         sol = cached_solve(log.odometry[log.odometry[:, 0] <= end], log.sightings[use], float(end), cal.delay,
-                           cal.odometry_sigma, np.array([cal.bearing_sigma, cal.range_sigma]))
+                           cal.odometry_sigma, np.array([cal.bearing_sigma, cal.range_sigma]), solver_settings())
         ids, points, joint = sol["ids"], sol["points"], sol["joint"]
         m = len(ids)
         floor = cal.landmark_sigma**2 * np.eye(2)
@@ -547,6 +593,7 @@ def team(path=None, robots=ROBOTS, until_s=None) -> MrclamTeam:
         out["rms"].append(fit_error(points, truth[ids])["rmse"])
         out["rms_incremental"].append(fit_error(sol["incremental"], truth[ids])["rmse"])
         out["sightings"].append(int(use.sum()))
+        out["rejected"].append(sol["rejected"])
         out["calibrations"].append(cal)
     first_poses = np.array(out["first_poses"])
     first_poses[:, 2] = wrap_angle(first_poses[:, 2])
@@ -555,6 +602,7 @@ def team(path=None, robots=ROBOTS, until_s=None) -> MrclamTeam:
         truth=truth, first_poses=first_poses, theta=wrap_angle(np.array(out["theta"])), t=np.array(out["t"]),
         sigma=np.array(out["sigma"]), stranger=np.zeros(len(robots), bool), rms=np.array(out["rms"]),
         rms_incremental=np.array(out["rms_incremental"]), sightings=np.array(out["sightings"]),
+        rejected=np.array(out["rejected"]),
         calibrations=tuple(out["calibrations"]), until_s=until_s,
     )
 
