@@ -27,9 +27,8 @@ def test_nothing_refers_outside_the_repository():
     assert offenders == []
 
 
-def test_readme_is_short_and_starts_with_the_two_commands():
+def test_readme_starts_with_the_two_commands():
     text = (ROOT / "README.md").read_text()
-    assert len(text.encode()) < 12_000
     first_block = text.split("```")[1]
     assert "make paper" in first_block and "make test" in first_block
     ci = (ROOT / ".ci" / "run").read_text()

@@ -137,13 +137,24 @@ def test_a_single_run_prints_its_numbers_and_names_dirs_plainly(tmp_path):
     assert "RuntimeWarning" not in proc.stderr
 
 
-def test_hydra_joblib_launcher_runs_jobs_in_parallel(tmp_path):
+def test_hydra_joblib_launcher_gives_each_cell_its_own_results_and_aggregates_them(tmp_path):
     proc = cli(["-m", "experiment=smoke", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2",
                 "mc.n_jobs=1", "mc.progress=false"], tmp_path)
     assert proc.returncode == 0, proc.stderr[-2000:]
     sweep = tmp_path / "outputs" / "sweeps" / "smoke"
-    assert len(list(sweep.glob("*/trials.parquet"))) == 2
-    assert (sweep / "aggregate" / "table.csv").exists()
+    from experiments.aggregate import aggregate
+    from harness_utils import compose_config
+
+    # A cell's trials are those of the same cell run alone, in this process.
+    (job,) = sweep.glob("*snr_db=40*/trials.parquet")
+    alone = run(compose_config(["experiment=smoke", "scenario.snr_db=40", "mc.n_jobs=1", "mc.progress=false",
+                                "mc.examples=0"]), tmp_path / "alone")
+    assert digest(job) == digest(alone)
+    # The multirun's aggregate is the aggregation of exactly its two runs.
+    aggregate(sorted(p.parent for p in sweep.glob("*/trials.parquet")), tmp_path / "again")
+    table = pd.read_csv(sweep / "aggregate" / "table.csv")
+    assert sorted(set(table.snr_db)) == [20, 40] and set(table.n_trials) == {40}
+    assert (sweep / "aggregate" / "table.csv").read_bytes() == (tmp_path / "again" / "table.csv").read_bytes()
 
 
 def test_dask_backend_gives_identical_results(tmp_path):
@@ -164,7 +175,9 @@ def test_victoria_park_preset_runs_real_data(tmp_path):
     trials = pd.concat([pd.read_parquet(r) for r in runs]).set_index("method")
     assert list(trials.n_p) == [82, 82] and list(trials.n_common_landmarks) == [66, 66]
     assert trials.loc["consensus", "rot_err_deg"] < 1 and trials.loc["consensus", "trans_err"] < 1
-    assert (tmp_path / "outputs" / "sweeps" / "victoria_park" / "aggregate" / "table.csv").exists()
+    table = pd.read_csv(tmp_path / "outputs" / "sweeps" / "victoria_park" / "aggregate" / "table.csv")
+    assert sorted(table.method) == ["consensus", "paper"] and (table.kind == "victoria_park").all()
+    assert table.set_index("method").loc["consensus", "success_rate"] == 1.0
     # The driver's table: consensus is right for the trees it paired, and its fused map is scored.
     from experiments.victoria import load_runs, table
 
