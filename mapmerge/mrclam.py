@@ -93,8 +93,10 @@ RELINEARIZE_THRESHOLD = 0.1
 RELINEARIZE_SKIP = 10
 #: After the solve, sightings whose range or bearing error exceeds this many
 #: calibrated standard deviations are dropped and the batch solve rerun, up
-#: to ``REJECTION_ROUNDS`` times.
-REJECTION_GATE = 5.0
+#: to ``REJECTION_ROUNDS`` times. On the whole logs 8 drops 19 of 16,067
+#: sightings (robot 5's map: 0.035 m RMS against 0.110 m without); 5 drops
+#: 121 and 4 drops 286 for maps within 0.016 m of those at 8.
+REJECTION_GATE = 8.0
 REJECTION_ROUNDS = 3
 
 
