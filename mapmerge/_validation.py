@@ -11,6 +11,9 @@ import numpy as np
 #: them (qhull fails on coordinates near 1e160); rescaling a map's units brings any real map inside.
 MAX_MAGNITUDE = 1e50
 MIN_MAGNITUDE = 1e-50
+#: Points are "all on one line" when none lies farther from it than this times the map's extent or its
+#: coordinates' magnitude, whichever is larger (a thousand times what qhull's rounding tolerates).
+FLAT_TOLERANCE = 1e-12
 
 
 def float_array(values, message: str) -> np.ndarray:
@@ -57,17 +60,21 @@ def check_geometry(maps: np.ndarray, name: str, indexed: bool = False) -> None:
     # Each point as one complex number (the same bits, no arithmetic): a sort puts equal points side by side.
     z = np.sort(np.ascontiguousarray(maps).view(complex)[..., 0], axis=1)
     duplicate = np.any(z[:, 1:] == z[:, :-1], axis=1)
-    # All on one line: every point's offset from the first is parallel to
-    # the longest such offset (to 1e-12 of the squared extent).
+    # All on one line: every point lies within FLAT_TOLERANCE of the extent, or of the coordinates'
+    # magnitude when that is larger, from the line along the longest offset from the first point.
+    # Rounding blurs a map far from its origin on the scale of its coordinates, not of its extent:
+    # qhull finds three points flat when their height is about 1e-15 of their coordinates.
     d = maps - maps[:, :1]
     far = d[np.arange(len(maps)), np.argmax(d[..., 0] ** 2 + d[..., 1] ** 2, axis=1)][:, None]
     cross = np.abs(d[..., 0] * far[..., 1] - d[..., 1] * far[..., 0])
     extent2 = far[:, 0, 0] ** 2 + far[:, 0, 1] ** 2
-    collinear = np.max(cross, axis=1) <= 1e-12 * extent2
+    magnitude = np.max(np.abs(maps), axis=(1, 2))
+    collinear = np.max(cross, axis=1) <= FLAT_TOLERANCE * np.sqrt(extent2) * np.maximum(np.sqrt(extent2), magnitude)
     small = extent2 < MIN_MAGNITUDE**2
     for bad, message in ((duplicate, "contains duplicate points; landmarks must be distinct"),
                          (small, f"points span less than {MIN_MAGNITUDE:g}; rescale the map's units"),
-                         (collinear, "points are all collinear; a triangulation needs 2-D spread")):
+                         (collinear, "points are all collinear (to rounding); a triangulation needs 2-D "
+                                     "spread")):
         if bad.any():
             raise ValueError(f"{name}[{int(np.argmax(bad))}] {message}" if indexed else f"{name} {message}")
 
