@@ -56,8 +56,9 @@ N_LANDMARKS, OVERLAP = 100, 0.5
 #: (n_agents, snr_db, topology, n_strangers) of every cell: the headline cells (``--headline-teams`` teams)
 #: and the grid (``--teams``).
 HEADLINE = [(5, 20.0, "ring", 0), (5, 20.0, "ring", 1)]
-GRID = ([(n, snr, top, 0) for top in ("ring", "random") for snr in (15.0, 20.0, 30.0) for n in (3, 5, 10, 20)]
-        + [(n, 20.0, top, 0) for top in ("chain", "star") for n in (3, 5, 10, 20)])
+GRID = [cell for cell in ([(n, snr, top, 0) for top in ("ring", "random") for snr in (15.0, 20.0, 30.0)
+                          for n in (3, 5, 10, 20)] + [(n, 20.0, top, 0) for top in ("chain", "star") for n in (3, 5, 10, 20)])
+        if cell not in HEADLINE]
 SPEED_AGENTS, SPEED_TEAMS = 20, 3
 
 

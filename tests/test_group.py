@@ -1,5 +1,8 @@
 """merge_many: N maps into one frame (mapmerge.group), make_group and group_errors."""
 
+import re
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -164,3 +167,11 @@ def test_merge_many_names_a_bad_map():
     maps[2] = np.array([[0.0, 0.0], [1.0, 1.0], [2.0, 2.0]])
     with pytest.raises(ValueError, match=r"maps\[2\] points are all collinear"):
         mm.merge_many(maps, team.sigma)
+
+
+def test_the_readme_team_example_prints_what_the_readme_shows(capsys):
+    section = (Path(__file__).resolve().parents[1] / "README.md").read_text().split("## Many agents")[1]
+    code = re.search(r"```python\n(.*?)```", section, re.S).group(1)
+    shown = re.search(r"prints\n\n```\n(.*?)```", section, re.S).group(1)
+    exec(code, {})
+    assert capsys.readouterr().out == shown
