@@ -265,14 +265,9 @@ _SHARED = ("snr_db", "density", "p_shared")
 class SpawnedSeeds:
     """The trial seeds ``SeedSequence(entropy, spawn_key=(*spawn_prefix, k))``, k in ``ks``, as one sequence.
 
-    It is a sequence of those ``SeedSequence`` objects (``seeds[i]``), and
-    ``make_pairs`` seeds its trials from it with the same bits as from a
-    list of them, in about 2 µs a trial instead of 8 (a SeedSequence and a
-    Generator made per trial): the entropy pools and PCG64 start states of
-    all trials are computed at once, vectorised over k, by SeedSequence's
-    and PCG64's seeding algorithms (frozen by numpy for reproducibility; a
-    test holds them to numpy's), and one Generator is reset to each trial's
-    state in turn.
+    A compact, checked sequence of those ``SeedSequence`` objects
+    (``seeds[i]``): ``make_pairs`` seeds its trials from it exactly as from
+    the list of them, with numpy's own ``default_rng``.
 
     Parameters
     ----------
@@ -282,6 +277,11 @@ class SpawnedSeeds:
         Spawn-key words before the trial index (e.g. a cell key), each >= 0.
     ks : (B,) array_like of int
         Trial indices, 0 <= k < 2**63.
+
+    Raises
+    ------
+    ValueError
+        If ``entropy``, a prefix word or a trial index is negative or not an integer.
     """
 
     entropy: int
@@ -304,82 +304,9 @@ class SpawnedSeeds:
         return np.random.SeedSequence(self.entropy, spawn_key=(*self.spawn_prefix, int(self.ks[i])))
 
     def generators(self):
-        """Yield, per trial, a Generator in its seed's start state: the same
-        object each time, reset before it is yielded (draw before the next)."""
-        rng = np.random.Generator(np.random.PCG64(0))
-        for state, inc in _pcg64_states(self.entropy, self.spawn_prefix, self.ks):
-            rng.bit_generator.state = {"bit_generator": "PCG64", "state": {"state": state, "inc": inc},
-                                       "has_uint32": 0, "uinteger": 0}
-            yield rng
-
-
-# Constants of numpy's SeedSequence (O'Neill's seed_seq alternative) and of PCG64's seeding.
-_INIT_A, _MULT_A, _INIT_B, _MULT_B = 0x43B0D7E5, 0x931E8875, 0x8B51F9DD, 0x58F38DED
-_MIX_MULT_L, _MIX_MULT_R, _MASK32 = 0xCA01F9DD, 0x4973F715, 0xFFFFFFFF
-_PCG_MULT, _MASK128 = 0x2360ED051FC65DA44385DF649FCCF645, (1 << 128) - 1
-
-
-def _words(value: int) -> list[int]:
-    """SeedSequence's little-endian 32-bit words of a non-negative int ([0] for 0)."""
-    out = [value & _MASK32]
-    while value > _MASK32:
-        value >>= 32
-        out.append(value & _MASK32)
-    return out
-
-
-def _pcg64_states(entropy: int, spawn_prefix: tuple, ks: np.ndarray) -> list[tuple[int, int]]:
-    """(state, inc) of ``PCG64(SeedSequence(entropy, spawn_key=(*spawn_prefix, k)))`` for each k."""
-    run = _words(entropy)
-    fixed = run + [0] * (4 - len(run)) + [w for v in spawn_prefix for w in _words(v)]
-    entropy_words = np.empty((len(ks), len(fixed) + 2), np.uint32)
-    entropy_words[:, :len(fixed)] = fixed
-    entropy_words[:, -2], entropy_words[:, -1] = ks & _MASK32, ks >> 32
-    long_k = ks > _MASK32
-    pool = np.empty((len(ks), 4), np.uint32)
-    for two_words in (False, True):
-        rows = long_k == two_words
-        pool[rows] = _pool(entropy_words[rows] if two_words else entropy_words[rows, :-1])
-    # generate_state(4, uint64): eight 32-bit words from the pool, read little-endian in pairs.
-    out, h = np.empty((len(ks), 8), np.uint32), _INIT_B
-    for i in range(8):
-        v = pool[:, i % 4] ^ np.uint32(h)
-        h = (h * _MULT_B) & _MASK32
-        v *= np.uint32(h)
-        out[:, i] = v ^ (v >> np.uint32(16))
-    w = out.astype("<u4").view("<u8").astype(np.uint64).tolist()
-    states = []
-    for w0, w1, w2, w3 in w:
-        # pcg_setseq_128_srandom_r: state 0, one step, add the seed, one step.
-        inc = (((w2 << 64) | w3) << 1 | 1) & _MASK128
-        states.append(((((inc + ((w0 << 64) | w1)) & _MASK128) * _PCG_MULT + inc) & _MASK128, inc))
-    return states
-
-
-def _pool(words: np.ndarray) -> np.ndarray:
-    """SeedSequence's 4-word entropy pool of each row of assembled entropy words (B, L >= 4)."""
-    h = _INIT_A
-
-    def hashmix(value):
-        nonlocal h
-        value = value ^ np.uint32(h)
-        h = (h * _MULT_A) & _MASK32
-        value = value * np.uint32(h)
-        return value ^ (value >> np.uint32(16))
-
-    def mix(x, y):
-        r = np.uint32(_MIX_MULT_L) * x - np.uint32(_MIX_MULT_R) * y
-        return r ^ (r >> np.uint32(16))
-
-    pool = np.stack([hashmix(words[:, i]) for i in range(4)], axis=1)
-    for src in range(4):
-        for dst in range(4):
-            if src != dst:
-                pool[:, dst] = mix(pool[:, dst], hashmix(pool[:, src]))
-    for src in range(4, words.shape[1]):
-        for dst in range(4):
-            pool[:, dst] = mix(pool[:, dst], hashmix(words[:, src]))
-    return pool
+        """Yield, per trial, ``np.random.default_rng`` of its seed."""
+        for i in range(len(self)):
+            yield np.random.default_rng(self[i])
 
 
 def make_pair(
@@ -448,8 +375,7 @@ def make_pairs(n_landmarks: int, overlap: float, snr_db: float, seeds, aspect: f
     seeds : sequence of None, int, SeedSequence or Generator, or SpawnedSeeds
         One per trial; each is normalised with ``np.random.default_rng`` and
         is the only randomness of its trial, so a trial is the same alone or
-        in any batch. ``SpawnedSeeds`` gives the same trials as its list of
-        SeedSequences, faster.
+        in any batch. ``SpawnedSeeds`` is a sequence of SeedSequences.
 
     Returns
     -------
@@ -464,9 +390,8 @@ def make_pairs(n_landmarks: int, overlap: float, snr_db: float, seeds, aspect: f
     u = np.empty((B, 2 * sum(count for count, _, _ in blocks)))
     perm_p, perm_q = np.empty((B, m), np.intp), np.empty((B, m), np.intp)
     u3, z = np.empty((B, 3)), np.empty((B, 2, m, 2))
-    generators = (seeds.generators() if isinstance(seeds, SpawnedSeeds)
-                  else (np.random.default_rng(check_rng(seed, "each seed")) for seed in seeds))
-    for k, rng in enumerate(generators):
+    for k, seed in enumerate(seeds):
+        rng = np.random.default_rng(check_rng(seed, "each seed"))
         # One call per run of draws: ``uniform(a, b)`` is ``a + (b - a)·random``
         # and ``normal(0, σ)`` is ``σ·standard_normal``, so scaling afterwards
         # gives the same bits as drawing block by block.
