@@ -29,6 +29,10 @@ twice. Ground truth of an association is therefore the physical tree
 (``physical_trees``: ids closer than ``SAME_TREE_RADIUS`` are one tree),
 not the raw id; the rigid fits by id (``map_quality``, the fit-by-ids
 truth) use raw ids, which are unambiguous there.
+
+``mrclam`` gives five robots' maps of the MR.CLAM data set (dataset 7,
+bundled in ``mapmerge/data/mrclam/``), each solved by the robot alone;
+``mapmerge.mrclam`` holds the method.
 """
 
 from __future__ import annotations
