@@ -479,10 +479,12 @@ def mrclam(path=None, robots=(1, 2, 3, 4, 5), until_s=None):
     """Each robot's own landmark map of MR.CLAM dataset 7 (five robots, 15 landmarks), solved with iSAM2.
 
     ``mapmerge.mrclam`` documents the method: per robot, a calibration of
-    its odometry delay and noise and its sighting noise against the Vicon
-    poses, then iSAM2 over its own odometry and landmark sightings (robust
-    Huber bearing-range factors), a batch refinement, and the landmarks'
-    marginal covariances; each map in the frame of the robot's first pose.
+    its odometry delay and noise, its sighting noise and its systematic
+    landmark error against the Vicon poses, then iSAM2 over its own
+    odometry and landmark sightings (robust Huber bearing-range factors), a
+    batch refinement, one rejection of gross misreads, and the landmarks'
+    marginal covariances plus the systematic error; each map in the frame of
+    the robot's first pose.
     Needs GTSAM (optional extra ``[slam]``); solves are cached on disk.
 
     Parameters
