@@ -23,6 +23,11 @@ Measured in one run so that ratios are stable on a noisy machine:
    merge on 100-landmark pairs at 10, 15 and 20 dB (related and
    unrelated), and one 10^4-landmark pair at 15 and 20 dB.
 
+6. ``mapmerge merge`` end to end (a subprocess, its own peak RSS) on two
+   1,000-landmark map files whose units differ by a factor of 1, 100,
+   10^4 and 10^9 (map b's coordinates scaled): memory and time must not
+   grow with the ratio.
+
 Each section writes ``results/bench/<section>.csv`` and ``.md``;
 ``bench.csv`` (one row per measurement) and ``bench.md`` (the targets next
 to the numbers) collect every section's last run, so ``--only low_snr``
@@ -50,6 +55,10 @@ from scipy.spatial import Delaunay
 SCALE_LIMIT_S = 300
 SCALE_LIMIT_BYTES = 8 * 2**30
 SCALE_METHODS = ("paper", "cyclic", "consensus", "search", "groth", "astroalign")
+#: Ratios of map b's units to map a's, landmarks per map and the targets of the scale-ratio section.
+SCALE_RATIOS = (1.0, 1e2, 1e4, 1e9)
+SCALE_RATIO_LANDMARKS = 1000
+SCALE_RATIO_TARGET_S, SCALE_RATIO_TARGET_GB = 30.0, 1.5
 #: SNRs and seeds of the low-SNR timing (disjoint from every tuning and reported seed).
 LOW_SNRS = (10.0, 15.0, 20.0)
 LOW_SNR_SEED = 600_000
@@ -287,9 +296,57 @@ def section_low_snr(quick: bool) -> tuple[list[dict], list[str]]:
     return rows, md
 
 
+def merge_command(ratio: float, n: int = SCALE_RATIO_LANDMARKS, snr_db: float = 30.0) -> dict:
+    """``mapmerge merge`` on two n-landmark map files, map b's coordinates multiplied by ``ratio``, in a
+    subprocess: wall seconds, its peak RSS (``os.wait4``), exit status and what it printed."""
+    import mapmerge as mm
+
+    sc = mm.simulate.make_pair(n, 0.75, snr_db, rng=2)
+    with tempfile.TemporaryDirectory() as tmp:
+        a, b = Path(tmp, "a.csv"), Path(tmp, "b.csv")
+        pd.DataFrame(sc.p, columns=["x", "y"]).to_csv(a, index=False)
+        pd.DataFrame(sc.q * ratio, columns=["x", "y"]).to_csv(b, index=False)
+        with open(Path(tmp, "out"), "w+") as out, open(Path(tmp, "err"), "w+") as err:
+            start = time.perf_counter()
+            proc = subprocess.Popen([sys.executable, "-m", "mapmerge", "merge", str(a), str(b), "--sigma",
+                                     repr(sc.sigma), "-o", str(Path(tmp, "merged.csv")), "--json"],
+                                    stdout=out, stderr=err)
+            # wait4 gives this child's own rusage (RUSAGE_CHILDREN would be the largest child so far).
+            _, status, usage = os.wait4(proc.pid, 0)
+            seconds = time.perf_counter() - start
+            proc.returncode = os.waitstatus_to_exitcode(status)  # reaped here, not by Popen
+            out.seek(0)
+            err.seek(0)
+            stdout, stderr = out.read(), err.read()
+    info = json.loads(stdout) if stdout.strip() else {}
+    return {"unit_ratio": ratio, "n_landmarks": n, "snr_db": snr_db, "seconds": seconds,
+            "peak_rss_gb": usage.ru_maxrss * 1024 / 1e9, "exit": proc.returncode,
+            "matched": bool(info.get("matched")), "pairs": info.get("pairs", 0),
+            "found": bool(info.get("matched")) and mm.metrics.transform_found(sc, info["theta"], np.array(info["t"])),
+            "stderr": " / ".join(stderr.strip().splitlines())[:200]}
+
+
+def section_scale_ratio(quick: bool) -> tuple[list[dict], list[str]]:
+    rows = [merge_command(ratio) for ratio in SCALE_RATIOS]
+    md = [f"## mapmerge merge on maps in different units, {SCALE_RATIO_LANDMARKS:,} landmarks per map "
+          f"(target: <= {SCALE_RATIO_TARGET_S:g} s and <= {SCALE_RATIO_TARGET_GB:g} GB whatever the ratio)", "",
+          f"Two map files of `make_pair({SCALE_RATIO_LANDMARKS}, 0.75, 30, rng=2)`, map b's coordinates "
+          "multiplied by the ratio (map b in other units), merged by `python -m mapmerge merge a.csv b.csv "
+          "--sigma SIGMA -o merged.csv --json` in a subprocess: wall time and that process's peak RSS.", "",
+          "| ratio of units | seconds | peak RSS (GB) | exit | outcome | target met |",
+          "|---:|---:|---:|---:|---|:---|"]
+    for r in rows:
+        outcome = (f"matched, {r['pairs']} pairs, transform {'found' if r['found'] else 'wrong'}" if r["matched"]
+                   else "no match" + (" (scale warning)" if "same units" in r["stderr"] else ""))
+        met = r["seconds"] <= SCALE_RATIO_TARGET_S and r["peak_rss_gb"] <= SCALE_RATIO_TARGET_GB
+        md.append(f"| {r['unit_ratio']:g} | {r['seconds']:.1f} | {r['peak_rss_gb']:.2f} | {r['exit']} | {outcome} | "
+                  f"{'yes' if met else 'no'} |")
+    return [{"benchmark": "scale_ratio", **r} for r in rows], md
+
+
 #: The benchmark sections in the order of bench.md; ``--only`` reruns some and keeps the others' last results.
 SECTIONS = {"per_trial": section_per_trial, "fig3_grid": section_fig3_grid, "scale": section_scale,
-            "single_call": section_single_call, "low_snr": section_low_snr}
+            "single_call": section_single_call, "low_snr": section_low_snr, "scale_ratio": section_scale_ratio}
 
 
 def main(argv=None) -> None:
