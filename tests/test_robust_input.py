@@ -31,7 +31,7 @@ from mapmerge import cli
 PEAK_BYTES = 1024 * 2**20
 PEAK_RSS_BYTES = int(1.5 * 2**30)
 
-FUZZ = settings(max_examples=25, derandomize=True, database=None, deadline=None, print_blob=True,
+FUZZ = settings(max_examples=20, derandomize=True, database=None, deadline=None, print_blob=True,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 
 # Mostly small maps (each example must be fast), one in ten up to 2,000 landmarks.
