@@ -171,7 +171,7 @@ def test_merge_many_names_a_bad_map():
 
 def test_the_readme_team_example_prints_what_the_readme_shows(capsys):
     section = (Path(__file__).resolve().parents[1] / "README.md").read_text().split("## Many agents")[1]
-    code = re.search(r"```python\n(.*?)```", section, re.S).group(1)
-    shown = re.search(r"prints\n\n```\n(.*?)```", section, re.S).group(1)
+    code = re.search(r"```python\n(.*?)```", section, re.DOTALL).group(1)
+    shown = re.search(r"prints\n\n```\n(.*?)```", section, re.DOTALL).group(1)
     exec(code, {})
     assert capsys.readouterr().out == shown
