@@ -38,12 +38,14 @@ bundled in ``mapmerge/data/mrclam/``), each solved by the robot alone;
 from __future__ import annotations
 
 import functools
+import gzip
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from . import mrclam as mrclam_slam
 from .alignment import align_pairs, rotate, rotation, wrap_angle
 from .merging import pooled_sigma
 
@@ -475,7 +477,100 @@ def map_quality(pair: AgentPair) -> dict:
     return out
 
 
-def mrclam(path=None, robots=(1, 2, 3, 4, 5), until_s=None):
+# MR.CLAM: the files and each robot's map (the solver is ``mapmerge.mrclam``).
+
+#: Where the bundled copy of MR.CLAM dataset 7 lives.
+MRCLAM_DIR = Path(__file__).resolve().parent / "data" / "mrclam"
+
+
+def _mrclam_file(root: Path, name: str) -> Path:
+    for candidate in (root / name, root / f"{name}.gz"):
+        if candidate.is_file():
+            return candidate
+    raise DatasetError(f"MR.CLAM file not found: {root / name} (or {name}.gz)")
+
+
+def _mrclam_table(root: Path, name: str, columns: int) -> np.ndarray:
+    path = _mrclam_file(root, name)
+    try:
+        table = np.loadtxt(path, ndmin=2, comments="#")
+    except (ValueError, OSError) as exc:
+        raise DatasetError(f"{path} is malformed: {exc}") from None
+    if table.shape[1] != columns or len(table) == 0:
+        raise DatasetError(f"{path} must have {columns} columns and at least one line, got shape {table.shape}")
+    return table
+
+
+def _mrclam_first_time(root: Path, name: str) -> float:
+    path = _mrclam_file(root, name)
+    opener = gzip.open if path.suffix == ".gz" else open
+    with opener(path, "rt") as fh:
+        for line in fh:
+            if line.strip() and not line.lstrip().startswith("#"):
+                try:
+                    return float(line.split()[0])
+                except ValueError:
+                    break
+    raise DatasetError(f"{path} has no data line")
+
+
+def load_mrclam(path=None, robots=mrclam_slam.ROBOTS) -> mrclam_slam.Recording:
+    """Parse an MR.CLAM dataset directory (default: the bundled copy of dataset 7).
+
+    Each file may be the original ``X.dat`` or gzip-compressed ``X.dat.gz``.
+
+    Raises
+    ------
+    DatasetError
+        If the directory or a file is missing or a file does not parse.
+    """
+    root = Path(path) if path is not None else MRCLAM_DIR
+    if not root.is_dir():
+        raise DatasetError(f"MR.CLAM directory not found: {root}")
+    barcodes = _mrclam_table(root, "Barcodes.dat", 2).astype(np.int64)
+    landmarks = _mrclam_table(root, "Landmark_Groundtruth.dat", 5)[:, :3]
+    subject_of = dict(zip(barcodes[:, 1].tolist(), barcodes[:, 0].tolist()))
+    start = min(_mrclam_first_time(root, f"Robot{k}_Groundtruth.dat") for k in mrclam_slam.ROBOTS)
+    logs = {}
+    for k in robots:
+        odometry = _mrclam_table(root, f"Robot{k}_Odometry.dat", 3)
+        odometry = odometry[np.r_[np.diff(odometry[:, 0]) > 0, True]]
+        if np.any(np.diff(odometry[:, 0]) < 0):
+            raise DatasetError(f"Robot{k}_Odometry.dat: time stamps go backwards")
+        raw = _mrclam_table(root, f"Robot{k}_Measurement.dat", 4)
+        subject = np.array([subject_of.get(int(b), -1) for b in raw[:, 1]])
+        seen = np.column_stack([raw[:, 0], subject, raw[:, 2:]])
+        is_landmark = np.isin(subject, landmarks[:, 0])
+        logs[k] = mrclam_slam.RobotLog(
+            robot=k, odometry=odometry, sightings=seen[is_landmark],
+            robot_sightings=seen[(subject >= 1) & (subject <= len(mrclam_slam.ROBOTS))], misread=int(np.sum(subject < 0)),
+            groundtruth=_mrclam_table(root, f"Robot{k}_Groundtruth.dat", 4),
+        )
+    return mrclam_slam.Recording(landmarks=landmarks, start=start, robots=logs, path=root)
+
+
+def _check_mrclam_robots(robots) -> tuple:
+    try:
+        chosen = tuple(robots)
+    except TypeError:
+        chosen = None
+    ok = (chosen is not None and len(chosen) > 0 and len(set(chosen)) == len(chosen)
+          and all(not isinstance(k, bool) and isinstance(k, (int, np.integer)) and k in mrclam_slam.ROBOTS for k in chosen))
+    if not ok:
+        raise ValueError(f"robots must be distinct robot numbers among {mrclam_slam.ROBOTS}, got {robots!r}")
+    return tuple(int(k) for k in chosen)
+
+
+def _check_until_s(until_s):
+    if until_s is None:
+        return None
+    if isinstance(until_s, bool) or not isinstance(until_s, (int, float, np.integer, np.floating)) \
+            or not 0 < until_s < np.inf:
+        raise ValueError(f"until_s must be a positive number of seconds or None, got {until_s!r}")
+    return float(until_s)
+
+
+def mrclam(path=None, robots=(1, 2, 3, 4, 5), until_s=None) -> mrclam_slam.MrclamTeam:
     """Each robot's own landmark map of MR.CLAM dataset 7 (five robots, 15 landmarks), solved with iSAM2.
 
     ``mapmerge.mrclam`` documents the method: per robot, a calibration of
@@ -517,6 +612,53 @@ def mrclam(path=None, robots=(1, 2, 3, 4, 5), until_s=None):
         sighted two landmarks); ``DatasetError`` on a missing or malformed
         directory or file.
     """
-    from .mrclam import team
+    robots = _check_mrclam_robots(robots)
+    until_s = _check_until_s(until_s)
+    recording = load_mrclam(path, robots)
+    memory = mrclam_slam.memory()
+    cached_calibrate, cached_solve = memory.cache(mrclam_slam.calibrate), memory.cache(mrclam_slam.solve_robot)
+    truth = np.full((max(mrclam_slam.LANDMARKS) + 1, 2), np.nan)
+    truth[recording.landmarks[:, 0].astype(int)] = recording.landmarks[:, 1:]
+    out = {name: [] for name in ("maps", "covs", "shape_covs", "ids", "first_poses", "theta", "t", "sigma",
+                                 "rms", "rms_incremental", "sightings", "rejected", "calibrations")}
+    for k in robots:
+        log = recording.robots[k]
+        cal = cached_calibrate(log, recording.landmarks, mrclam_slam.CALIBRATION_WINDOW, mrclam_slam.DELAY_GRID)
+        first = log.odometry[0, 0]
+        end = log.odometry[-1, 0] if until_s is None else min(log.odometry[-1, 0], recording.start + until_s)
+        use = (log.sightings[:, 0] >= first) & (log.sightings[:, 0] <= end)
+        if end <= first or np.unique(log.sightings[use, 1]).size < 2:
+            raise ValueError(f"until_s={until_s} leaves robot {k} with fewer than 2 landmarks sighted: "
+                             "choose a longer time")
+        sol = cached_solve(log.odometry[log.odometry[:, 0] <= end], log.sightings[use], float(end), cal.delay,
+                           cal.odometry_sigma, np.array([cal.bearing_sigma, cal.range_sigma]), mrclam_slam.solver_settings())
+        ids, points, joint = sol["ids"], sol["points"], sol["joint"]
+        m = len(ids)
+        floor = cal.landmark_sigma**2 * np.eye(2)
+        covs = joint.reshape(m, 2, m, 2)[np.arange(m), :, np.arange(m), :] + floor
+        shape = rigid_free_covariance(points, joint).reshape(m, 2, m, 2)[np.arange(m), :, np.arange(m), :] + floor
+        fit = align_pairs(truth[ids], points, 1.0)  # map ≈ R(θ) world + t
+        out["maps"].append(points)
+        out["covs"].append(covs)
+        out["shape_covs"].append(shape)
+        out["ids"].append(ids)
+        out["first_poses"].append(mrclam_slam.vicon_poses(log.groundtruth, np.array([first]))[0])
+        out["theta"].append(fit.theta)
+        out["t"].append(fit.t)
+        out["sigma"].append(float(np.sqrt(np.mean(np.trace(shape, axis1=1, axis2=2) / 2))))
+        out["rms"].append(fit_error(points, truth[ids])["rmse"])
+        out["rms_incremental"].append(fit_error(sol["incremental"], truth[ids])["rmse"])
+        out["sightings"].append(int(use.sum()))
+        out["rejected"].append(sol["rejected"])
+        out["calibrations"].append(cal)
+    first_poses = np.array(out["first_poses"])
+    first_poses[:, 2] = wrap_angle(first_poses[:, 2])
+    return mrclam_slam.MrclamTeam(
+        robots=robots, maps=out["maps"], covs=out["covs"], shape_covs=out["shape_covs"], ids=out["ids"],
+        truth=truth, first_poses=first_poses, theta=wrap_angle(np.array(out["theta"])), t=np.array(out["t"]),
+        sigma=np.array(out["sigma"]), stranger=np.zeros(len(robots), bool), rms=np.array(out["rms"]),
+        rms_incremental=np.array(out["rms_incremental"]), sightings=np.array(out["sightings"]),
+        rejected=np.array(out["rejected"]),
+        calibrations=tuple(out["calibrations"]), until_s=until_s,
+    )
 
-    return team(path, robots, until_s)

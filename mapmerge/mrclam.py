@@ -4,9 +4,11 @@ The data (``mapmerge/data/mrclam/``, see its SOURCES.md) is one recording of
 five robots driving for about 15 minutes among 15 surveyed landmarks. Each
 robot logs its commanded forward and angular velocity and camera sightings
 (range, bearing) of barcodes; a Vicon system gives every robot's true pose.
-``datasets.mrclam`` builds, for each robot, the landmark map that robot
+``datasets.mrclam`` (which reads the files, with ``datasets.load_mrclam``,
+and assembles the maps) builds, for each robot, the landmark map that robot
 would build alone: from its own odometry and its own landmark sightings,
 in the frame of its own first pose, with no Vicon pose used in the solve.
+This module holds the method: the calibration and the solver.
 
 Calibration (``calibrate``), once per robot on its whole log against the
 Vicon poses, as a robot's noise models would be measured before a mission:
@@ -62,18 +64,14 @@ Solves and calibrations are cached on disk with ``joblib.Memory`` under
 
 from __future__ import annotations
 
-import gzip
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ._slam import cache_dir
-from .alignment import align_pairs, wrap_angle
-from .datasets import DatasetError, fit_error, rigid_free_covariance
+from .alignment import wrap_angle
 
-#: Where the bundled copy of the data lives.
-DATA_DIR = Path(__file__).resolve().parent / "data" / "mrclam"
 #: The robots of the recording (subjects 1-5) and the landmarks' subject numbers.
 ROBOTS = (1, 2, 3, 4, 5)
 LANDMARKS = tuple(range(6, 21))
@@ -248,72 +246,6 @@ class MrclamTeam:
     until_s: float | None
 
 
-def _file(root: Path, name: str) -> Path:
-    for candidate in (root / name, root / f"{name}.gz"):
-        if candidate.is_file():
-            return candidate
-    raise DatasetError(f"MR.CLAM file not found: {root / name} (or {name}.gz)")
-
-
-def _table(root: Path, name: str, columns: int) -> np.ndarray:
-    path = _file(root, name)
-    try:
-        table = np.loadtxt(path, ndmin=2, comments="#")
-    except (ValueError, OSError) as exc:
-        raise DatasetError(f"{path} is malformed: {exc}") from None
-    if table.shape[1] != columns or len(table) == 0:
-        raise DatasetError(f"{path} must have {columns} columns and at least one line, got shape {table.shape}")
-    return table
-
-
-def _first_time(root: Path, name: str) -> float:
-    path = _file(root, name)
-    opener = gzip.open if path.suffix == ".gz" else open
-    with opener(path, "rt") as fh:
-        for line in fh:
-            if line.strip() and not line.lstrip().startswith("#"):
-                try:
-                    return float(line.split()[0])
-                except ValueError:
-                    break
-    raise DatasetError(f"{path} has no data line")
-
-
-def load(path=None, robots=ROBOTS) -> Recording:
-    """Parse an MR.CLAM dataset directory (default: the bundled copy of dataset 7).
-
-    Each file may be the original ``X.dat`` or gzip-compressed ``X.dat.gz``.
-
-    Raises
-    ------
-    DatasetError
-        If the directory or a file is missing or a file does not parse.
-    """
-    root = Path(path) if path is not None else DATA_DIR
-    if not root.is_dir():
-        raise DatasetError(f"MR.CLAM directory not found: {root}")
-    barcodes = _table(root, "Barcodes.dat", 2).astype(np.int64)
-    landmarks = _table(root, "Landmark_Groundtruth.dat", 5)[:, :3]
-    subject_of = dict(zip(barcodes[:, 1].tolist(), barcodes[:, 0].tolist()))
-    start = min(_first_time(root, f"Robot{k}_Groundtruth.dat") for k in ROBOTS)
-    logs = {}
-    for k in robots:
-        odometry = _table(root, f"Robot{k}_Odometry.dat", 3)
-        odometry = odometry[np.r_[np.diff(odometry[:, 0]) > 0, True]]
-        if np.any(np.diff(odometry[:, 0]) < 0):
-            raise DatasetError(f"Robot{k}_Odometry.dat: time stamps go backwards")
-        raw = _table(root, f"Robot{k}_Measurement.dat", 4)
-        subject = np.array([subject_of.get(int(b), -1) for b in raw[:, 1]])
-        seen = np.column_stack([raw[:, 0], subject, raw[:, 2:]])
-        is_landmark = np.isin(subject, landmarks[:, 0])
-        logs[k] = RobotLog(
-            robot=k, odometry=odometry, sightings=seen[is_landmark],
-            robot_sightings=seen[(subject >= 1) & (subject <= len(ROBOTS))], misread=int(np.sum(subject < 0)),
-            groundtruth=_table(root, f"Robot{k}_Groundtruth.dat", 4),
-        )
-    return Recording(landmarks=landmarks, start=start, robots=logs, path=root)
-
-
 def dead_reckon(odometry: np.ndarray, times: np.ndarray) -> np.ndarray:
     """Poses (x, y, heading) at ``times`` from commands held until the next line, integrated exactly.
 
@@ -376,7 +308,7 @@ def calibrate(log: RobotLog, landmarks: np.ndarray, window: float = CALIBRATION_
     start = np.arange(odo[0, 0], odo[-1, 0] - window, window)
     n = len(start)
     if n < 10 or len(log.sightings) < 10:
-        raise DatasetError(f"robot {log.robot}: too little data to calibrate ({n} odometry windows, "
+        raise ValueError(f"robot {log.robot}: too little data to calibrate ({n} odometry windows, "
                            f"{len(log.sightings)} landmark sightings)")
     times = np.r_[start, start + window]
     truth = vicon_poses(log.groundtruth, times)
@@ -531,82 +463,8 @@ def solve_robot(odometry: np.ndarray, sightings: np.ndarray, end_time: float, de
     }
 
 
-def _memory():
+def memory():
+    """The on-disk cache of calibrations and solves (``joblib.Memory`` under ``cache_dir() / "mrclam"``)."""
     import joblib
 
     return joblib.Memory(cache_dir() / "mrclam", verbose=0)
-
-
-def _check_robots(robots) -> tuple:
-    try:
-        chosen = tuple(robots)
-    except TypeError:
-        chosen = None
-    ok = (chosen is not None and len(chosen) > 0 and len(set(chosen)) == len(chosen)
-          and all(not isinstance(k, bool) and isinstance(k, (int, np.integer)) and k in ROBOTS for k in chosen))
-    if not ok:
-        raise ValueError(f"robots must be distinct robot numbers among {ROBOTS}, got {robots!r}")
-    return tuple(int(k) for k in chosen)
-
-
-def _check_until(until_s):
-    if until_s is None:
-        return None
-    if isinstance(until_s, bool) or not isinstance(until_s, (int, float, np.integer, np.floating)) \
-            or not 0 < until_s < np.inf:
-        raise ValueError(f"until_s must be a positive number of seconds or None, got {until_s!r}")
-    return float(until_s)
-
-
-def team(path=None, robots=ROBOTS, until_s=None) -> MrclamTeam:
-    """The robots' own maps (``datasets.mrclam`` documents the arguments)."""
-    robots = _check_robots(robots)
-    until_s = _check_until(until_s)
-    recording = load(path, robots)
-    memory = _memory()
-    cached_calibrate, cached_solve = memory.cache(calibrate), memory.cache(solve_robot)
-    truth = np.full((max(LANDMARKS) + 1, 2), np.nan)
-    truth[recording.landmarks[:, 0].astype(int)] = recording.landmarks[:, 1:]
-    out = {name: [] for name in ("maps", "covs", "shape_covs", "ids", "first_poses", "theta", "t", "sigma",
-                                 "rms", "rms_incremental", "sightings", "rejected", "calibrations")}
-    for k in robots:
-        log = recording.robots[k]
-        cal = cached_calibrate(log, recording.landmarks, CALIBRATION_WINDOW, DELAY_GRID)
-        first = log.odometry[0, 0]
-        end = log.odometry[-1, 0] if until_s is None else min(log.odometry[-1, 0], recording.start + until_s)
-        use = (log.sightings[:, 0] >= first) & (log.sightings[:, 0] <= end)
-        if end <= first or np.unique(log.sightings[use, 1]).size < 2:
-            raise ValueError(f"until_s={until_s} leaves robot {k} with fewer than 2 landmarks sighted: "
-                             "choose a longer time")
-        sol = cached_solve(log.odometry[log.odometry[:, 0] <= end], log.sightings[use], float(end), cal.delay,
-                           cal.odometry_sigma, np.array([cal.bearing_sigma, cal.range_sigma]), solver_settings())
-        ids, points, joint = sol["ids"], sol["points"], sol["joint"]
-        m = len(ids)
-        floor = cal.landmark_sigma**2 * np.eye(2)
-        covs = joint.reshape(m, 2, m, 2)[np.arange(m), :, np.arange(m), :] + floor
-        shape = rigid_free_covariance(points, joint).reshape(m, 2, m, 2)[np.arange(m), :, np.arange(m), :] + floor
-        fit = align_pairs(truth[ids], points, 1.0)  # map ≈ R(θ) world + t
-        out["maps"].append(points)
-        out["covs"].append(covs)
-        out["shape_covs"].append(shape)
-        out["ids"].append(ids)
-        out["first_poses"].append(vicon_poses(log.groundtruth, np.array([first]))[0])
-        out["theta"].append(fit.theta)
-        out["t"].append(fit.t)
-        out["sigma"].append(float(np.sqrt(np.mean(np.trace(shape, axis1=1, axis2=2) / 2))))
-        out["rms"].append(fit_error(points, truth[ids])["rmse"])
-        out["rms_incremental"].append(fit_error(sol["incremental"], truth[ids])["rmse"])
-        out["sightings"].append(int(use.sum()))
-        out["rejected"].append(sol["rejected"])
-        out["calibrations"].append(cal)
-    first_poses = np.array(out["first_poses"])
-    first_poses[:, 2] = wrap_angle(first_poses[:, 2])
-    return MrclamTeam(
-        robots=robots, maps=out["maps"], covs=out["covs"], shape_covs=out["shape_covs"], ids=out["ids"],
-        truth=truth, first_poses=first_poses, theta=wrap_angle(np.array(out["theta"])), t=np.array(out["t"]),
-        sigma=np.array(out["sigma"]), stranger=np.zeros(len(robots), bool), rms=np.array(out["rms"]),
-        rms_incremental=np.array(out["rms_incremental"]), sightings=np.array(out["sightings"]),
-        rejected=np.array(out["rejected"]),
-        calibrations=tuple(out["calibrations"]), until_s=until_s,
-    )
-

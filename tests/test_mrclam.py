@@ -10,7 +10,7 @@ import pytest
 
 import mapmerge as mm
 from mapmerge import mrclam
-from mapmerge.datasets import DatasetError
+from mapmerge.datasets import MRCLAM_DIR, DatasetError, load_mrclam
 
 pytest.importorskip("gtsam")
 
@@ -65,7 +65,7 @@ def test_maps_are_in_each_robots_first_pose_frame_and_fit_the_surveyed_landmarks
 
 
 def test_until_s_keeps_the_sightings_of_that_time(first_minute):
-    recording = mrclam.load(robots=(3,))
+    recording = load_mrclam(robots=(3,))
     sightings = recording.robots[3].sightings
     first = recording.robots[3].odometry[0, 0]
     kept = (sightings[:, 0] >= first) & (sightings[:, 0] <= recording.start + 60)
@@ -77,7 +77,7 @@ def test_an_original_format_directory_gives_the_same_maps(tmp_path, monkeypatch,
     monkeypatch.setenv("MAPMERGE_CACHE", str(tmp_path / "own_cache"))  # solved again, not read back
     original = tmp_path / "original"
     original.mkdir()
-    for packed in mrclam.DATA_DIR.glob("*.dat.gz"):
+    for packed in MRCLAM_DIR.glob("*.dat.gz"):
         with gzip.open(packed, "rb") as src, open(original / packed.name[:-3], "wb") as dst:
             shutil.copyfileobj(src, dst)
     team = mm.datasets.mrclam(path=original, robots=(2,), until_s=60)
@@ -92,10 +92,10 @@ def test_the_derivation_script_rebuilds_the_bundle(tmp_path):
     derive = _derivation_script()
     original = tmp_path / "original"
     original.mkdir()
-    for packed in mrclam.DATA_DIR.glob("*.dat.gz"):
+    for packed in MRCLAM_DIR.glob("*.dat.gz"):
         (original / packed.name[:-3]).write_bytes(gzip.decompress(packed.read_bytes()))
     derive.derive(original, tmp_path / "bundle")
-    for packed in mrclam.DATA_DIR.glob("*.dat.gz"):
+    for packed in MRCLAM_DIR.glob("*.dat.gz"):
         assert (tmp_path / "bundle" / packed.name).read_bytes() == packed.read_bytes(), packed.name
 
 
@@ -141,7 +141,7 @@ def test_bad_arguments_are_one_line_errors(cache, kwargs, message):
 def test_missing_directory_or_file_is_a_dataset_error(tmp_path):
     with pytest.raises(DatasetError, match="MR.CLAM directory not found"):
         mm.datasets.mrclam(path=tmp_path / "nowhere")
-    shutil.copy(mrclam.DATA_DIR / "Barcodes.dat.gz", tmp_path)
+    shutil.copy(MRCLAM_DIR / "Barcodes.dat.gz", tmp_path)
     with pytest.raises(DatasetError, match=r"MR.CLAM file not found: .*Landmark_Groundtruth.dat"):
         mm.datasets.mrclam(path=tmp_path)
 
