@@ -3,7 +3,10 @@
     python -m experiments.aggregate RUN_OR_SWEEP_DIR [...] --out DIR
 
 Reads every ``trials.parquet`` / ``pairs.parquet`` below the given
-directories (runs of the same cell, e.g. other seeds, are pooled) and writes:
+directories and writes the tables below. Runs of the same cell are pooled:
+other seeds add trials, and runs that overlap (a sweep extended to more
+trials, or run again under its name) count each (seed, trial, τ rule) once,
+their union; runs whose common trials differ are refused, naming them.
 
 - ``roc.csv``: P_FA, P_D and log τ per cell (sampled on a fixed P_FA grid,
   plus every point of the curve's first rise);
@@ -118,31 +121,91 @@ def load(dirs, n_jobs: int = 1) -> tuple[pd.DataFrame, dict[tuple, pd.DataFrame]
     Returns
     -------
     trials : DataFrame
-        One row per trial and τ rule, timings joined.
+        One row per trial and τ rule, timings joined; a trial held by
+        several runs of a cell appears once (``union``).
     pairs : dict
         Cell (tuple of the ``CELL`` values) -> its pairs from every run of
-        it, with a ``seed`` column; cells in sorted order. Kept per cell, not
+        it (each trial's once), with a ``seed`` column; cells in sorted order. Kept per cell, not
         as one frame with the cell repeated on millions of rows.
     """
-    runs = joblib.Parallel(n_jobs=n_jobs, prefer="threads")(
-        joblib.delayed(_load_run)(run) for run in find_runs(dirs))
+    paths = find_runs(dirs)
+    runs = joblib.Parallel(n_jobs=n_jobs, prefer="threads")(joblib.delayed(_load_run)(run) for run in paths)
     by_cell = {}
-    for t, p in runs:
-        by_cell.setdefault(_cell(t), []).append((t, p))
+    for i, (t, _) in enumerate(runs):
+        by_cell.setdefault(_cell(t), []).append(i)
     # A run never repeats a trial: only a cell with several runs can hold one twice.
-    for cell, parts in by_cell.items():
-        if len(parts) > 1:
-            keys = pa.concat_tables([t.select(["seed", "trial", "tau"]) for t, _ in parts]).to_pandas()
-            dup = keys.duplicated()
-            if dup.any():
-                row = keys[dup].iloc[0]
-                raise ValueError(
-                    f"trial {row.trial} of cell {dict(zip(CELL, cell))} (seed {row.seed}) appears in more than "
-                    "one run; pass run directories that do not overlap (e.g. one n_trials setting per cell)"
-                )
+    for cell, idx in by_cell.items():
+        if len(idx) > 1:
+            for i, (t, p) in zip(idx, union([paths[i] for i in idx], [runs[i] for i in idx], cell)):
+                runs[i] = t, p
     # One conversion of all runs at once: concatenating Arrow tables copies nothing.
     trials = pa.concat_tables([t for t, _ in runs], promote_options="default").to_pandas()
-    return trials, {cell: _once([p for _, p in by_cell[cell]]) for cell in sorted(by_cell)}
+    return trials, {cell: _once([runs[i][1] for i in by_cell[cell]]) for cell in sorted(by_cell)}
+
+
+#: Trials shown by name when runs of a cell disagree.
+SHOWN_CONFLICTS = 3
+
+
+def union(paths, runs, cell) -> list[tuple[pa.Table, pd.DataFrame]]:
+    """The runs of one cell with every (seed, trial, τ rule) kept once: the union of their trials.
+
+    Runs of a cell overlap when a sweep is extended (more trials) or run
+    again under the same name; their common trials are the same bits, so
+    the first run that holds a trial supplies it.
+
+    Parameters
+    ----------
+    paths : list of Path
+        The runs' directories (named in the error).
+    runs : list of (pyarrow.Table, DataFrame)
+        Their trials and pairs, as ``_load_run`` gives them.
+    cell : tuple
+        The cell's ``CELL`` values.
+
+    Returns
+    -------
+    list of (pyarrow.Table, DataFrame)
+        Each run's trials without those an earlier run holds (its pairs as given: ``_once`` keeps
+        one copy of each trial's pairs).
+
+    Raises
+    ------
+    ValueError
+        When a trial (or its triangle pairs) differs between two runs, e.g. runs of other code or
+        another version of numpy: the trials are named and nothing is pooled.
+    """
+    common = sorted(set.intersection(*(set(t.column_names) for t, _ in runs)) - {*TIME_COLUMNS})
+    frames = [t.select(common).to_pandas() for t, _ in runs]
+    keys = pd.concat([f[["seed", "trial", "tau"]] for f in frames], ignore_index=True)
+    keys["digest"] = np.concatenate([pd.util.hash_pandas_object(f, index=False).to_numpy() for f in frames])
+    keys["run"] = np.repeat(np.arange(len(runs)), [len(f) for f in frames])
+    first = keys.groupby(["seed", "trial", "tau"], sort=False)["digest"].transform("first")
+    _refuse_conflicts(keys[keys.digest != first], keys, paths, cell, "trial")
+    # The pairs of a trial (τ-independent) must agree too: compared by a digest of all its rows.
+    pairs = pd.concat([p.assign(run=k, digest=pd.util.hash_pandas_object(
+        p[["trial", "score", "label", "order_consistent"]], index=False).to_numpy())
+        for k, (_, p) in enumerate(runs)], ignore_index=True)
+    per_trial = pairs.groupby(["run", "seed", "trial"], sort=False).agg(digest=("digest", "sum"),
+                                                                      n=("digest", "size")).reset_index()
+    per_trial["digest"] = per_trial.digest.to_numpy(np.uint64) ^ per_trial.n.to_numpy(np.uint64)
+    first = per_trial.groupby(["seed", "trial"], sort=False)["digest"].transform("first")
+    _refuse_conflicts(per_trial[per_trial.digest != first], per_trial, paths, cell, "triangle pairs of trial")
+    keep = ~keys.duplicated(["seed", "trial", "tau"]).to_numpy()
+    bounds = np.r_[0, np.cumsum([len(f) for f in frames])]
+    return [(t.filter(pa.array(keep[a:b])), p) for (t, p), a, b in zip(runs, bounds[:-1], bounds[1:])]
+
+
+def _refuse_conflicts(bad: pd.DataFrame, rows: pd.DataFrame, paths, cell, what: str) -> None:
+    if bad.empty:
+        return
+    shown = []
+    for row in bad.head(SHOWN_CONFLICTS).itertuples():
+        other = rows[(rows.seed == row.seed) & (rows.trial == row.trial)].run.iloc[0]
+        rule = f", τ rule {row.tau}" if "tau" in rows else ""
+        shown.append(f"{what} {row.trial} (seed {row.seed}{rule}) in {paths[other]} and {paths[row.run]}")
+    raise ValueError(f"{len(bad)} trial(s) of cell {dict(zip(CELL, cell))} differ between runs (other code, "
+                     f"library versions or settings): {'; '.join(shown)}; aggregate those runs apart")
 
 
 def _once(parts: list[pd.DataFrame]) -> pd.DataFrame:

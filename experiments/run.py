@@ -50,7 +50,17 @@ def dirname(overrides: str) -> str:
     return overrides.replace("\\", "").replace(":", "-") or "defaults"
 
 
+def sweep_name(name: str, now: str) -> str:
+    """A sweep's directory below ``sweeps/``: its ``name``, or for the unnamed default ``default/<now>``, so
+    that sweeps without ``name=`` do not pool into one aggregate."""
+    return f"{name}/{now}" if name == UNNAMED else name
+
+
+#: The value of ``name`` when none is given.
+UNNAMED = "default"
+
 OmegaConf.register_new_resolver("dirname", dirname, replace=True)
+OmegaConf.register_new_resolver("sweep_name", sweep_name, replace=True)
 register_configs()
 
 

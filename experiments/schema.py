@@ -168,6 +168,8 @@ class Config:
     mc: MCConfig = field(default_factory=MCConfig)
     # Where aggregate tables land after a multirun (null: <sweep dir>/aggregate).
     aggregate_dir: str | None = None
+    # Runs, sweeps, the trial cache shared by them and the results store live under it.
+    output_root: str = "outputs"
 
     def __post_init__(self):
         if self.scenario.kind == Kind.victoria_park and self.mc.n_trials != 1:

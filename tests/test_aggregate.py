@@ -73,11 +73,19 @@ def test_tau_rules_split_across_jobs_count_each_trial_once(tmp_path):
         tmp_path / "older" / "timings.parquet")
     with pytest.raises(ValueError, match="row for row"):
         aggregate([tmp_path / "older"], tmp_path / "older_agg2")
-    # The same trials in two runs of one cell would be counted twice: refused.
+    # The same trials in two runs of one cell count once (their union) ...
     shutil.copytree(tmp_path / "one", tmp_path / "copy")
-    with pytest.raises(ValueError, match="appears in more than one run"):
-        aggregate([tmp_path / "one", tmp_path / "copy"], tmp_path / "twice")
-    assert not (tmp_path / "twice").exists()
+    aggregate([tmp_path / "one", tmp_path / "copy"], tmp_path / "twice")
+    for name in ("table.csv", "auc.csv", "roc.csv"):
+        assert (tmp_path / "twice" / name).read_bytes() == (tmp_path / "one_agg" / name).read_bytes(), name
+    # ... unless they differ: the trials are named and nothing is written.
+    trials = pd.read_parquet(tmp_path / "copy" / "trials.parquet")
+    trials.loc[(trials.trial == 7) & (trials.tau == "-3"), "tp"] += 1
+    trials.to_parquet(tmp_path / "copy" / "trials.parquet")
+    with pytest.raises(ValueError, match=r"1 trial\(s\) of cell .* differ between runs .*: trial 7 \(seed 0, "
+                       r"τ rule -3\) in .*copy and .*one; aggregate those runs apart"):
+        aggregate([tmp_path / "one", tmp_path / "copy"], tmp_path / "conflict")
+    assert not (tmp_path / "conflict").exists()
 
 
 def test_example_triangle_status_prefers_the_telling_pair():
@@ -220,3 +228,27 @@ def test_aggregating_a_directory_without_runs_is_one_line_and_exit_2(tmp_path, c
     assert exit_.value.code == 2
     assert capsys.readouterr().err == f"error: no trials.parquet below {tmp_path / 'empty'}\n"
     assert not (tmp_path / "out").exists()
+
+
+def test_two_sweeps_under_one_name_keep_every_cell_of_both(tmp_path):
+    from experiments.aggregate import main
+
+    common = ["-m", "name=mine", "scenario=small", "matcher.taus=[chi2:0.01]", "mc.n_jobs=1", "mc.progress=false"]
+    first = cli([*common, "scenario.snr_db=20,30", "mc.n_trials=8"], tmp_path)
+    # The second sweep overlaps the first (the 30 dB cell, 8 of its 12 trials): its aggregate is the union.
+    second = cli([*common, "scenario.snr_db=30,40", "mc.n_trials=12"], tmp_path)
+    assert first.returncode == 0 and second.returncode == 0, first.stderr[-2000:] + second.stderr[-2000:]
+    sweep = tmp_path / "outputs" / "sweeps" / "mine"
+    table = pd.read_csv(sweep / "aggregate" / "table.csv")
+    assert dict(zip(table.snr_db, table.n_trials)) == {20: 8, 30: 12, 40: 12}
+    main([str(sweep), "--out", str(tmp_path / "again")])
+    for name in ("table.csv", "auc.csv", "roc.csv"):
+        assert (tmp_path / "again" / name).read_bytes() == (sweep / "aggregate" / name).read_bytes(), name
+
+
+def test_sweeps_without_a_name_get_directories_of_their_own():
+    from harness_utils import compose_config
+
+    unnamed = compose_config([], hydra=True).hydra.sweep.dir
+    assert unnamed.startswith("outputs/sweeps/default/20") and len(unnamed) == len("outputs/sweeps/default/") + 19
+    assert compose_config(["name=mine"], hydra=True).hydra.sweep.dir == "outputs/sweeps/mine"
