@@ -4,9 +4,11 @@
     python -m experiments.run -m experiment=fig3       # a sweep preset
     python -m experiments.run -m scenario.snr_db=20,30,40
 
-Each run writes into its Hydra output directory:
+Each run writes into its Hydra output directory (its chunks of trials go
+to the trial cache, ``<output_root>/cache/trials/<key>/``, one atomic
+Parquet file per finished chunk: the resume points, shared by every run and
+sweep of the same cell, so that more trials compute only the new ones):
 
-- ``chunks/``: one atomic Parquet file per finished chunk (the resume points);
 - ``trials.parquet``: one row per trial and τ rule (counts, map-level errors);
 - ``pairs.parquet``: one row per tentative triangle pair (score, label);
 - ``timings.parquet``: per-trial timings (kept apart: they vary run to run,
@@ -17,8 +19,9 @@ Each run writes into its Hydra output directory:
 - ``config.yaml`` (resolved) and, with ``mc.examples > 0``, the geometry of
   the first trials for Fig. 1 and Fig. 2.
 
-Rerunning the same command skips finished chunks. Every config value is
-checked, for every job of a sweep, before Hydra creates any directory.
+Rerunning the same command, or one with a larger ``mc.n_trials``, skips
+finished chunks. Every config value is checked, for every job of a sweep,
+before Hydra creates any directory.
 """
 
 from __future__ import annotations
@@ -126,8 +129,8 @@ def _backend(mc, n_chunks: int):
             cluster.close()
 
 
-def run(cfg: DictConfig, output_dir: str | Path) -> Path:
-    """Run (or resume) the trials of one cell and write its result files.
+def run(cfg: DictConfig, output_dir: str | Path, cache_dir: str | Path | None = None) -> Path:
+    """Run (or resume, or extend) the trials of one cell and write its result files.
 
     Parameters
     ----------
@@ -135,6 +138,11 @@ def run(cfg: DictConfig, output_dir: str | Path) -> Path:
         A composed config (see ``conf/``).
     output_dir : path
         Where the files go (the Hydra output directory).
+    cache_dir : path, optional
+        The trial cache: chunks of trials by ``_run_key`` (scenario, matcher, seed, code, library
+        versions and arithmetic), reused by any run of the same cell, whatever its ``n_trials``.
+        ``python -m experiments.run`` passes ``<output_root>/cache/trials`` (shared by runs and
+        sweeps); by default ``<output_dir>/chunks``.
 
     Returns
     -------
@@ -150,7 +158,8 @@ def run(cfg: DictConfig, output_dir: str | Path) -> Path:
     from .trials import cell_key
 
     out = Path(output_dir)
-    chunk_dir = out / "chunks"
+    out.mkdir(parents=True, exist_ok=True)
+    chunk_dir = Path(out / "chunks" if cache_dir is None else cache_dir) / _run_key(cfg)
     chunk_dir.mkdir(parents=True, exist_ok=True)
     OmegaConf.save(cfg, out / "config.yaml", resolve=True)
 
@@ -158,18 +167,19 @@ def run(cfg: DictConfig, output_dir: str | Path) -> Path:
     scenario = OmegaConf.to_container(cfg.scenario, enum_to_str=True)
     matcher = OmegaConf.to_container(cfg.matcher, enum_to_str=True)
     n, seed = cfg.mc.n_trials, cfg.mc.seed
-    # chunk_size is an upper bound: every worker gets at least one chunk.
-    size = min(cfg.mc.chunk_size, -(-n // cfg.mc.n_jobs))
-    run_key = _run_key(cfg)
-    bounds = [(a, min(a + size, n)) for a in range(0, n, size)]
 
     def stem(a, b):
-        return chunk_dir / f"{run_key}_{a:07d}_{b:07d}"
+        return chunk_dir / f"{a:07d}_{b:07d}"
 
-    todo = [(a, b) for a, b in bounds if not Path(f"{stem(a, b)}.trials.parquet").exists()]
+    pieces, missing = cover(cached_chunks(chunk_dir), n)
+    n_missing = sum(b - a for a, b in missing)
+    # chunk_size is an upper bound: every worker gets at least one chunk.
+    size = min(cfg.mc.chunk_size, -(-n_missing // cfg.mc.n_jobs)) if n_missing else 1
+    todo = [(a, min(a + size, b)) for lo, b in missing for a in range(lo, b, size)]
+    pieces = sorted(pieces + [(a, b, a, b) for a, b in todo], key=lambda piece: piece[2])
     log.info(
-        "cell %s: %d trials in %d chunks, %d to run, n_jobs=%d backend=%s",
-        scenario, n, len(bounds), len(todo), cfg.mc.n_jobs, str(cfg.mc.backend),
+        "cell %s: %d trials, %d cached, %d to run in %d chunks, n_jobs=%d backend=%s",
+        scenario, n, n - n_missing, n_missing, len(todo), cfg.mc.n_jobs, str(cfg.mc.backend),
     )
     fresh = {}  # the chunks this process computed or received, kept rather than read back
     if todo:
@@ -177,9 +187,9 @@ def run(cfg: DictConfig, output_dir: str | Path) -> Path:
             fresh = _run_chunks(cfg, scenario, matcher, todo, stem)
         except KeyboardInterrupt:
             pass  # joblib may also end its results early when Ctrl-C reaches the workers
-        done = sum(Path(f"{stem(a, b)}.trials.parquet").exists() for a, b in bounds)
-        if done < len(bounds):
-            print(f"interrupted: {done} of {len(bounds)} chunks saved in {chunk_dir}; "
+        done = sum(Path(f"{stem(a, b)}.trials.parquet").exists() for a, b in todo)
+        if done < len(todo):
+            print(f"interrupted: {done} of {len(todo)} chunks saved in {chunk_dir}; "
                   "rerun the same command to resume", file=sys.stderr)
             raise SystemExit(130)
 
@@ -192,8 +202,10 @@ def run(cfg: DictConfig, output_dir: str | Path) -> Path:
     # workers wait, so it avoids pandas round trips.
     tables = {}
     for kind in ("trials", "pairs", "timings"):
-        table = pa.concat_tables([fresh[a, b][kind] if (a, b) in fresh
-                                  else pq.read_table(f"{stem(a, b)}.{kind}.parquet") for a, b in bounds])
+        parts = [fresh[a, b][kind] if (a, b) in fresh else pq.read_table(f"{stem(a, b)}.{kind}.parquet")
+                 for a, b, _, _ in pieces]
+        table = pa.concat_tables([_trials_between(part, lo, hi) if (lo, hi) != (a, b) else part
+                                  for part, (a, b, lo, hi) in zip(parts, pieces)])
         if kind == "trials":
             n_rows = table.num_rows
             for i, (key, value) in enumerate(cell.items()):
@@ -207,6 +219,57 @@ def run(cfg: DictConfig, output_dir: str | Path) -> Path:
             write_parquet_atomic(table, out / f"{name}.parquet")
     log.info("wrote %s (%d rows)", out / "trials.parquet", n_rows)
     return out / "trials.parquet"
+
+
+def cached_chunks(chunk_dir: Path) -> list[tuple[int, int]]:
+    """The (start, stop) trial ranges of the finished chunks in ``chunk_dir`` (its trials file, written
+    last, marks a chunk finished)."""
+    chunks = []
+    for path in chunk_dir.glob("*.trials.parquet"):
+        a, _, b = path.name.removesuffix(".trials.parquet").partition("_")
+        if a.isdigit() and b.isdigit():
+            chunks.append((int(a), int(b)))
+    return chunks
+
+
+def cover(chunks, n: int) -> tuple[list[tuple[int, int, int, int]], list[tuple[int, int]]]:
+    """Trials ``0..n-1`` from cached chunks: the pieces to read and the ranges to compute.
+
+    Parameters
+    ----------
+    chunks : iterable of (int, int)
+        Cached chunks' trial ranges (``start``, ``stop``), which may overlap or go past ``n``.
+    n : int
+        Trials wanted.
+
+    Returns
+    -------
+    pieces : list of (a, b, lo, hi)
+        Chunk ``(a, b)`` supplies trials ``lo..hi-1``; in trial order, not overlapping.
+    missing : list of (lo, hi)
+        The ranges of trials no chunk holds.
+    """
+    chunks = sorted(set(chunks))
+    pieces, missing, pos = [], [], 0
+    while pos < n:
+        holding = [(a, b) for a, b in chunks if a <= pos < b]
+        if holding:
+            a, b = max(holding, key=lambda chunk: chunk[1])  # the chunk reaching furthest
+            pieces.append((a, b, pos, min(b, n)))
+            pos = min(b, n)
+        else:
+            stop = min([a for a, _ in chunks if a > pos] + [n])
+            missing.append((pos, stop))
+            pos = stop
+    return pieces, missing
+
+
+def _trials_between(table, lo: int, hi: int):
+    """The rows of trials ``lo..hi-1`` of a chunk's table."""
+    import pyarrow.compute as pc
+
+    trial = table.column("trial")
+    return table.filter(pc.and_(pc.greater_equal(trial, lo), pc.less(trial, hi)))
 
 
 def _run_chunks(cfg, scenario: dict, matcher: dict, todo, stem) -> dict:
@@ -282,7 +345,7 @@ def main(cfg: DictConfig) -> None:
     from hydra.core.hydra_config import HydraConfig
     from hydra.types import RunMode
 
-    path = run(cfg, HydraConfig.get().runtime.output_dir)
+    path = run(cfg, HydraConfig.get().runtime.output_dir, cache_dir=Path(cfg.output_root) / "cache" / "trials")
     if HydraConfig.get().mode == RunMode.RUN:  # a sweep's numbers come from its aggregate
         import pandas as pd
 

@@ -28,13 +28,41 @@ def test_n_jobs_and_chunk_size_do_not_change_results(tmp_path):
 def test_resume_after_deleting_chunks_is_identical(tmp_path):
     out = run(small(), tmp_path).parent
     before = {n: digest(out / n) for n in ("trials.parquet", "pairs.parquet")}
-    chunks = sorted((out / "chunks").glob("*.trials.parquet"))
+    chunks = sorted((out / "chunks").rglob("*.trials.parquet"))
     for path in chunks[1:3]:
         path.unlink()
     mtime = chunks[0].stat().st_mtime_ns
     run(small(), tmp_path)
     assert chunks[0].stat().st_mtime_ns == mtime  # finished chunk not recomputed
     assert {n: digest(out / n) for n in before} == before
+
+
+def test_more_trials_compute_only_the_new_ones_and_equal_a_fresh_run(tmp_path, caplog):
+    cache = tmp_path / "cache"
+    run(small(n_trials=12), tmp_path / "first", cache)
+    with caplog.at_level("INFO", logger="experiments.run"):
+        more = run(small(n_trials=30), tmp_path / "more", cache).parent
+    assert "30 trials, 12 cached, 18 to run in " in caplog.text
+    fresh = run(small(n_trials=30), tmp_path / "fresh", tmp_path / "other_cache").parent
+    for name in ("trials.parquet", "pairs.parquet"):
+        assert digest(more / name) == digest(fresh / name), name
+    # Fewer trials than cached: read from the cache, nothing run, the same rows as a fresh run of as many.
+    caplog.clear()
+    with caplog.at_level("INFO", logger="experiments.run"):
+        fewer = run(small(n_trials=20), tmp_path / "fewer", cache).parent
+    assert "20 trials, 20 cached, 0 to run in 0 chunks" in caplog.text
+    pd.testing.assert_frame_equal(pd.read_parquet(fewer / "pairs.parquet"),
+                                  pd.read_parquet(fresh / "pairs.parquet").query("trial < 20").reset_index(drop=True))
+
+
+def test_cover_reads_cached_chunks_and_lists_the_gaps():
+    from experiments.run import cover
+
+    # Overlapping chunks (two processes extended one cell) and one past n: no trial read twice.
+    pieces, missing = cover([(0, 10), (5, 20), (30, 40), (45, 60)], 50)
+    assert pieces == [(0, 10, 0, 10), (5, 20, 10, 20), (30, 40, 30, 40), (45, 60, 45, 50)]
+    assert missing == [(20, 30), (40, 45)]
+    assert cover([], 7) == ([], [(0, 7)])
 
 
 def test_run_summaries_follow_the_run_and_aggregate_as_its_trials(tmp_path):
@@ -66,10 +94,10 @@ def test_run_summaries_follow_the_run_and_aggregate_as_its_trials(tmp_path):
 def test_chunks_of_other_code_libraries_or_arithmetic_are_not_reused(tmp_path, monkeypatch, digest_name, other):
     # One process: the patched digest must also be the workers' (see the next test).
     out = run(small(n_jobs=1), tmp_path).parent
-    before = set((out / "chunks").glob("*.trials.parquet"))
+    before = set((out / "chunks").rglob("*.trials.parquet"))
     monkeypatch.setattr(f"experiments.trials.{digest_name}", lambda: other)
     run(small(n_jobs=1), tmp_path)
-    after = set((out / "chunks").glob("*.trials.parquet"))
+    after = set((out / "chunks").rglob("*.trials.parquet"))
     assert len(after - before) == len(before)  # every chunk recomputed under a new key
 
 
@@ -103,7 +131,7 @@ def _start(args, cwd):
 def _wait_for_chunks(cwd, count):
     deadline = time.time() + 120
     while time.time() < deadline:
-        done = list(cwd.rglob("chunks/*.trials.parquet"))
+        done = list(cwd.glob("outputs/cache/trials/*/*.trials.parquet"))
         if len(done) >= count:
             return done[0].parent
         time.sleep(0.05)
@@ -113,19 +141,21 @@ def _wait_for_chunks(cwd, count):
 @pytest.mark.parametrize("how", [signal.SIGKILL, signal.SIGINT])
 def test_interrupted_run_resumes_to_the_uninterrupted_result(tmp_path, how):
     proc = _start([*SLOW_CELL, "name=cut"], tmp_path)
-    chunk_dir = _wait_for_chunks(tmp_path, 3)
+    _wait_for_chunks(tmp_path, 3)
     os.killpg(proc.pid, how)  # the whole process group, as Ctrl-C in a terminal
     _, err = proc.communicate()
-    assert not (chunk_dir.parent / "trials.parquet").exists()
+    (run_dir,) = (tmp_path / "outputs" / "runs" / "cut").iterdir()
+    assert not (run_dir / "trials.parquet").exists()
     if how == signal.SIGINT:
         assert proc.returncode == 130
         lines = [line for line in err.splitlines() if "][INFO]" not in line]
         assert len(lines) == 1 and lines[0].startswith("interrupted: ") and "rerun the same command" in lines[0]
     assert cli([*SLOW_CELL, "name=cut"], tmp_path).returncode == 0
-    assert cli([*SLOW_CELL, "name=ref"], tmp_path).returncode == 0
-    ref_dir = next((tmp_path / "outputs" / "runs" / "ref").iterdir())
+    # The reference computes every trial afresh: a trial cache of its own.
+    assert cli([*SLOW_CELL, "name=ref", f"output_root={tmp_path / 'ref'}"], tmp_path).returncode == 0
+    ref_dir = next((tmp_path / "ref" / "runs" / "ref").iterdir())
     for name in ("trials.parquet", "pairs.parquet"):
-        assert digest(chunk_dir.parent / name) == digest(ref_dir / name)
+        assert digest(run_dir / name) == digest(ref_dir / name)
 
 
 def test_a_single_run_prints_its_numbers_and_names_dirs_plainly(tmp_path):
