@@ -162,7 +162,7 @@ class GroupMerge:
         return {s: sum(e.status == s for e in self.edges) for s in (ACCEPTED, INCONSISTENT, NO_MATCH)}
 
 
-def merge_many(maps, sigma=None, covs=None, method: str = "consensus", tau=DEFAULT_TAU, reference: int = 0,
+def merge_many(maps, sigma=None, covs=None, *, method: str = "consensus", tau=DEFAULT_TAU, reference: int = 0,
                placement: str = "joint", candidates=None, n_jobs: int = 1, rng=None) -> GroupMerge:
     """Merge N landmark maps into one map in the frame of one of them.
 
@@ -214,7 +214,8 @@ def merge_many(maps, sigma=None, covs=None, method: str = "consensus", tau=DEFAU
     if not (isinstance(n_jobs, (int, np.integer)) and n_jobs != 0 and n_jobs >= -1):
         raise ValueError(f"n_jobs must be a positive integer or -1, got {n_jobs!r}")
     pairs = candidate_pairs(maps, sigmas, candidates)
-    edges = pairwise_edges(maps, sigmas, covs, pairs, method, tau, n_jobs, check_rng(rng), sigma is not None)
+    edges = pairwise_edges(maps, sigmas, covs, pairs, method=method, tau=tau, n_jobs=n_jobs, rng=check_rng(rng),
+                           sigma_given=sigma is not None)
     variances = [np.broadcast_to(s**2 * np.eye(2), (len(m), 2, 2)) if c is None else c
                  for m, s, c in zip(maps, sigmas, covs)]
     return assemble(maps, variances, edges, int(reference), placement)
@@ -289,7 +290,7 @@ def candidate_pairs(maps, sigmas, candidates=None) -> np.ndarray:
     return np.unique(np.sort(chosen, axis=1), axis=0)
 
 
-def pairwise_edges(maps, sigmas, covs, pairs, method="consensus", tau=DEFAULT_TAU, n_jobs=1, rng=None,
+def pairwise_edges(maps, sigmas, covs, pairs, *, method="consensus", tau=DEFAULT_TAU, n_jobs=1, rng=None,
                    sigma_given=True) -> list:
     """``merge_maps`` of every listed pair of (valid) maps, as edges ("accepted" or "no match").
 

@@ -515,23 +515,41 @@ def group_errors(team, group) -> dict:
         ``fused_rmse`` (all tracks) and ``shared_rmse`` (multi-map tracks)
         against the truth in the reference frame.
     """
-    N = len(team.maps)
-    ref = int(group.reference)
     stranger = np.asarray(team.stranger, dtype=bool)
+    status, rot_err, registration, nees = _placements(team, group, stranger)
+    team_map = ~stranger
+    return {
+        "placed_correct": int(np.sum((status == "correct") & team_map)),
+        "placed_wrong": int(np.sum(status == "wrong")),
+        "unplaced": int(np.sum((status == "unplaced") & team_map)),
+        "strangers_placed": int(np.sum(group.placed & stranger & (group.placed.sum() > 1))),
+        "all_correct": bool(np.all(status[team_map] == "correct") and not np.any(status == "wrong")),
+        "status": list(status), "rot_err_deg": rot_err, "registration": registration, "nees": nees,
+        "beyond_cov": int(np.sum(nees > chdtri(3, 1e-3))),
+        **_track_scores(team, group, team_map),
+    }
+
+
+def _reference_truth(team, ref: int):
+    """The true frames relative to map ``ref`` and the map from the world into ``ref``'s frame."""
+    # map i ≈ R(θ_i - θ_r) x_ref + t_i - R(θ_i - θ_r) t_r.
+    N = len(team.maps)
+    theta = np.asarray(team.theta, dtype=float) - team.theta[ref]
+    t = np.asarray(team.t, dtype=float) - rotate(theta, np.broadcast_to(team.t[ref], (N, 1, 2)))[:, 0]
+    return theta, t, lambda x: rotate(team.theta[ref], x) + team.t[ref]
+
+
+def _placements(team, group, stranger):
+    """Per map: "correct" / "wrong" / "unplaced", rotation error (deg), RMS registration and NEES."""
+    N, ref = len(team.maps), int(group.reference)
     sigma = np.broadcast_to(np.asarray(team.sigma, dtype=float), (N,))
-    truth = np.asarray(team.truth, dtype=float)
-    # True frames relative to the reference: map i ≈ R(θ_i - θ_r) x_ref + t_i - R(θ_i - θ_r) t_r.
-    true_theta = np.asarray(team.theta, dtype=float) - team.theta[ref]
-    true_t = np.asarray(team.t, dtype=float) - rotate(true_theta, np.broadcast_to(team.t[ref], (N, 1, 2)))[:, 0]
-    rot_err = np.full(N, np.nan)
-    registration = np.full(N, np.nan)
-    nees = np.full(N, np.nan)
+    true_theta, true_t, world_to_ref = _reference_truth(team, ref)
+    rot_err, registration, nees = np.full(N, np.nan), np.full(N, np.nan), np.full(N, np.nan)
     status = np.where(group.placed, "wrong", "unplaced").astype(object)
-    world_to_ref = (lambda x: rotate(team.theta[ref], x) + team.t[ref])
     for i in np.flatnonzero(group.placed):
         if stranger[i] or stranger[ref]:
             continue
-        x = world_to_ref(truth[team.ids[i]])
+        x = world_to_ref(np.asarray(team.truth, dtype=float)[team.ids[i]])
         x = x[~np.isnan(x[:, 0])]
         d = rotate(group.theta[i], x) + group.t[i] - rotate(true_theta[i], x) - true_t[i]
         rot_err[i] = np.degrees(np.abs(wrap_angle(group.theta[i] - true_theta[i])))
@@ -543,40 +561,37 @@ def group_errors(team, group) -> dict:
             status[i] = "correct"
     if stranger[ref] and group.placed.sum() == 1:
         status[ref] = "unplaced"  # a stranger alone in its own frame placed nothing
-    team_map = ~stranger
-    ids = np.where(group.tracks >= 0, 0, -1)
-    for i in range(N):
-        rows = group.tracks[:, i]
-        ids[rows >= 0, i] = np.asarray(team.ids[i])[rows[rows >= 0]]
-    members = (group.tracks >= 0).sum(axis=1)
-    multi = members >= 2
-    first = ids[np.arange(len(ids)), np.argmax(group.tracks >= 0, axis=1)] if len(ids) else np.zeros(0, np.intp)
-    pure = np.all((ids == first[:, None]) | (ids < 0), axis=1)
-    # Completeness: landmarks sighted by two or more placed team maps, all sightings in one track.
-    sighted = [np.asarray(team.ids[i]) for i in range(N) if group.placed[i] and team_map[i]]
-    seen_ids, seen_count = np.unique(np.concatenate(sighted) if sighted else np.zeros(0, np.intp), return_counts=True)
-    shared_ids = seen_ids[seen_count >= 2]
-    team_tracks = np.any((group.tracks >= 0) & team_map, axis=1)
-    tracks_per_id = {}
-    for k in np.flatnonzero(team_tracks):
-        for lm in np.unique(ids[k][ids[k] >= 0]):
-            tracks_per_id[lm] = tracks_per_id.get(lm, 0) + 1
-    complete = np.mean([tracks_per_id.get(lm, 0) == 1 for lm in shared_ids]) if shared_ids.size else np.nan
-    duplicates = int(sum(n - 1 for n in tracks_per_id.values()))
-    scored = pure & team_tracks & ~np.isnan(truth[first, 0]) if len(ids) else np.zeros(0, bool)
-    err2 = np.sum((group.merged - world_to_ref(truth[first])) ** 2, axis=1) if len(ids) else np.zeros(0)
+    return status, rot_err, registration, nees
+
+
+def _track_scores(team, group, team_map) -> dict:
+    """Track purity, completeness, duplicates and the fused map's RMSE (``group_errors``)."""
+    tracks = group.tracks
+    present = tracks >= 0
+    ids = np.full(tracks.shape, -1)
+    for i in range(len(team.maps)):
+        ids[present[:, i], i] = np.asarray(team.ids[i])[tracks[present[:, i], i]]
+    multi = present.sum(axis=1) >= 2
+    first = ids[np.arange(len(ids)), np.argmax(present, axis=1)]
+    pure = np.all((ids == first[:, None]) | ~present, axis=1)
+    # Each (track, true id) once, over the tracks holding a team map's landmark.
+    team_tracks = np.any(present & team_map, axis=1)
+    k, i = np.nonzero(present & team_tracks[:, None])
+    _, per_id = np.unique(np.unique(np.stack([ids[k, i], k], axis=1), axis=0)[:, 0], return_counts=True)
+    in_tracks = np.unique(ids[k, i])
+    # Completeness: landmarks sighted by two or more placed team maps, all their sightings in one track.
+    sighted = [np.asarray(team.ids[m]) for m in np.flatnonzero(group.placed & team_map)]
+    seen, count = np.unique(np.concatenate(sighted + [np.zeros(0, np.intp)]), return_counts=True)
+    shared = seen[count >= 2]
+    one_track = np.isin(shared, in_tracks[per_id == 1])
+    truth = np.asarray(team.truth, dtype=float)
+    scored = pure & team_tracks & ~np.isnan(truth[first, 0])
+    err2 = np.sum((group.merged - _reference_truth(team, int(group.reference))[2](truth[first])) ** 2, axis=1)
     with np.errstate(invalid="ignore"):
-        fused = np.sqrt(np.mean(err2[scored]) / 2) if scored.any() else np.nan
-        shared = np.sqrt(np.mean(err2[scored & multi]) / 2) if (scored & multi).any() else np.nan
-    return {
-        "placed_correct": int(np.sum((status == "correct") & team_map)),
-        "placed_wrong": int(np.sum(status == "wrong")),
-        "unplaced": int(np.sum((status == "unplaced") & team_map)),
-        "strangers_placed": int(np.sum(group.placed & stranger & (group.placed.sum() > 1))),
-        "all_correct": bool(np.all(status[team_map] == "correct") and not np.any(status == "wrong")),
-        "status": list(status), "rot_err_deg": rot_err, "registration": registration, "nees": nees,
-        "beyond_cov": int(np.sum(nees > chdtri(3, 1e-3))),
-        "track_purity": float(np.mean(pure[multi])) if multi.any() else np.nan,
-        "track_completeness": float(complete), "duplicates": duplicates,
-        "fused_rmse": float(fused), "shared_rmse": float(shared),
-    }
+        return {
+            "track_purity": float(np.mean(pure[multi])) if multi.any() else np.nan,
+            "track_completeness": float(np.mean(one_track)) if shared.size else np.nan,
+            "duplicates": int(np.sum(per_id - 1)),
+            "fused_rmse": float(np.sqrt(np.mean(err2[scored]) / 2)) if scored.any() else np.nan,
+            "shared_rmse": float(np.sqrt(np.mean(err2[scored & multi]) / 2)) if (scored & multi).any() else np.nan,
+        }

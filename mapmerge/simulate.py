@@ -644,7 +644,7 @@ def _window_landmarks(centres: np.ndarray, r: float, density: float, rng: np.ran
     return x[seen]
 
 
-def make_group(n_agents: int = 5, n_landmarks: int = 100, overlap: float = 0.5, snr_db: float = 20.0,
+def make_group(n_agents: int = 5, n_landmarks: int = 100, overlap: float = 0.5, snr_db: float = 20.0, *,
                layout: str = "strip", topology: str = "ring", n_strangers: int = 0,
                p_detect: float = DEFAULT_P_DETECT, rng=None) -> Team:
     """Draw a synthetic team: ``n_agents`` robots whose maps overlap along a topology.
