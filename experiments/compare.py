@@ -63,6 +63,7 @@ from scipy.stats import norm  # noqa: E402
 
 from .aggregate import markdown, runs_since, save_table, with_timing  # noqa: E402
 from .figures import STYLE, _save  # noqa: E402
+from .intervals import ratio_interval, wilson  # noqa: E402
 from .paper import _call  # noqa: E402
 
 #: The sweeps of the experiment: each writes ``<out>/<preset>/table.csv``.
@@ -197,17 +198,6 @@ def found_pairs(runs) -> pd.DataFrame:
     return found[["layout", "snr_db", "trial", *PAIR_COUNTS]].sort_values(["layout", "snr_db", "trial"])
 
 
-def ratio_interval(x, y, level: float = 0.95) -> tuple[float, float]:
-    """Normal interval of the ratio of sums Σx / Σy over n sampled units (the delta method:
-    standard error √(Σ(x - R y)² / (n (n - 1))) / ȳ); NaN for fewer than 2 units or Σy = 0."""
-    x, y = np.asarray(x, float), np.asarray(y, float)
-    if len(x) < 2 or y.sum() == 0:
-        return float("nan"), float("nan")
-    r = x.sum() / y.sum()
-    half = norm.ppf(0.5 + level / 2) * np.sqrt(np.sum((x - r * y) ** 2) / (len(x) * (len(x) - 1))) / y.mean()
-    return r - half, r + half
-
-
 def association_table(table: pd.DataFrame, pairs: pd.DataFrame | None = None) -> pd.DataFrame:
     """``association.md``: the landmark association on the pairs whose transform was found, against both
     oracles', from a sweep with enough pairs to find some where transforms are rarely found; with
@@ -233,17 +223,6 @@ def association_table(table: pd.DataFrame, pairs: pd.DataFrame | None = None) ->
              "wrong_vs_transform_oracle_found": "wrong vs transform oracle (found)"}
     t = t.sort_values(["layout", "snr_db"], key=lambda c: c != "strip" if c.name == "layout" else c)
     return t[[c for c in names if c in t]].rename(columns=names)
-
-
-def wilson(successes, n, level: float = 0.95) -> tuple[np.ndarray, np.ndarray]:
-    """Wilson score interval of a binomial proportion."""
-    successes, n = np.asarray(successes, float), np.asarray(n, float)
-    z = norm.ppf(0.5 + level / 2)
-    p = successes / n
-    centre = (p + z**2 / (2 * n)) / (1 + z**2 / n)
-    half = z * np.sqrt(p * (1 - p) / n + z**2 / (4 * n**2)) / (1 + z**2 / n)
-    # Rounded: the formula leaves 1e-19 where the bound is exactly 0.
-    return np.clip(np.round(centre - half, 12), 0.0, 1.0), np.clip(np.round(centre + half, 12), 0.0, 1.0)
 
 
 #: Methods of ``found.md``: the ones meant to work where triangles stop discriminating.

@@ -16,6 +16,8 @@ sweep of the same cell, so that more trials compute only the new ones):
   ``chunk_size`` and after a resume);
 - ``summary_*.parquet``: the run's rows of the aggregate tables (see
   ``experiments.aggregate``);
+- ``results.parquet``: its rows of the results store (``experiments.results``),
+  also written to ``<output_root>/results/``;
 - ``config.yaml`` (resolved) and, with ``mc.examples > 0``, the geometry of
   the first trials for Fig. 1 and Fig. 2.
 
@@ -129,7 +131,8 @@ def _backend(mc, n_chunks: int):
             cluster.close()
 
 
-def run(cfg: DictConfig, output_dir: str | Path, cache_dir: str | Path | None = None) -> Path:
+def run(cfg: DictConfig, output_dir: str | Path, cache_dir: str | Path | None = None,
+        store_dir: str | Path | None = None) -> Path:
     """Run (or resume, or extend) the trials of one cell and write its result files.
 
     Parameters
@@ -143,6 +146,9 @@ def run(cfg: DictConfig, output_dir: str | Path, cache_dir: str | Path | None = 
         versions and arithmetic), reused by any run of the same cell, whatever its ``n_trials``.
         ``python -m experiments.run`` passes ``<output_root>/cache/trials`` (shared by runs and
         sweeps); by default ``<output_dir>/chunks``.
+    store_dir : path, optional
+        The results store (``experiments.results``) that gets this run's rows, besides its own
+        ``results.parquet``; ``python -m experiments.run`` passes ``<output_root>/results``.
 
     Returns
     -------
@@ -155,11 +161,13 @@ def run(cfg: DictConfig, output_dir: str | Path, cache_dir: str | Path | None = 
 
     from .aggregate import SUMMARIES, run_summaries, summary_path
     from .examples import example_tables
+    from .results import RUN_FILE, run_rows, store_file
     from .trials import cell_key
 
     out = Path(output_dir)
     out.mkdir(parents=True, exist_ok=True)
-    chunk_dir = Path(out / "chunks" if cache_dir is None else cache_dir) / _run_key(cfg)
+    run_key = _run_key(cfg)
+    chunk_dir = Path(out / "chunks" if cache_dir is None else cache_dir) / run_key
     chunk_dir.mkdir(parents=True, exist_ok=True)
     OmegaConf.save(cfg, out / "config.yaml", resolve=True)
 
@@ -212,8 +220,16 @@ def run(cfg: DictConfig, output_dir: str | Path, cache_dir: str | Path | None = 
                 table = table.add_column(i, key, pa.repeat(value, n_rows))
         _write_table_atomic(table, out / f"{kind}.parquet")
         tables[kind] = table
-    for kind, summary in run_summaries(out, tables["trials"], tables["timings"], tables["pairs"]).items():
+    summaries = run_summaries(out, tables["trials"], tables["timings"], tables["pairs"])
+    for kind, summary in summaries.items():
         _write_table_atomic(summary, summary_path(out, kind))
+    rows = pa.Table.from_pandas(run_rows(cfg, out, tables["trials"].to_pandas(),
+                                         {kind: t.to_pandas() for kind, t in summaries.items()}, run_key),
+                                preserve_index=False)
+    _write_table_atomic(rows, out / RUN_FILE)
+    if store_dir is not None:
+        Path(store_dir).mkdir(parents=True, exist_ok=True)
+        _write_table_atomic(rows, store_file(store_dir, out))
     if cfg.mc.examples:
         for name, table in example_tables(seed, scenario, matcher, range(cfg.mc.examples)).items():
             write_parquet_atomic(table, out / f"{name}.parquet")
@@ -345,7 +361,11 @@ def main(cfg: DictConfig) -> None:
     from hydra.core.hydra_config import HydraConfig
     from hydra.types import RunMode
 
-    path = run(cfg, HydraConfig.get().runtime.output_dir, cache_dir=Path(cfg.output_root) / "cache" / "trials")
+    from .results import STORE
+
+    root = Path(cfg.output_root)
+    path = run(cfg, HydraConfig.get().runtime.output_dir, cache_dir=root / "cache" / "trials",
+               store_dir=root / STORE)
     if HydraConfig.get().mode == RunMode.RUN:  # a sweep's numbers come from its aggregate
         import pandas as pd
 

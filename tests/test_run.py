@@ -165,6 +165,37 @@ def test_a_single_run_prints_its_numbers_and_names_dirs_plainly(tmp_path):
     (run_dir,) = (tmp_path / "outputs" / "runs" / "default").iterdir()
     assert "\\" not in run_dir.name and "chi2-0.01" in run_dir.name
     assert "RuntimeWarning" not in proc.stderr
+    # Its rows in the results store: one per τ rule, its directory recorded.
+    from experiments.results import load
+
+    rows = load(tmp_path / "outputs")
+    assert sorted(rows.tau) == ["chi2:0.01", "oracle"] and set(rows.run_dir) == {str(run_dir)}
+    assert (rows["mc.n_trials"] == 20).all() and (rows.n_trials == 20).all()
+
+
+def test_results_store_holds_every_run_and_answers_queries(tmp_path, capsys):
+    from experiments.results import load, main, store_file
+
+    store = tmp_path / "store"
+    for snr in (15, 25):
+        cfg = small(n_trials=6, n_jobs=1)
+        cfg.scenario.snr_db, cfg.matcher.taus = snr, ["chi2:0.01"]
+        run(cfg, tmp_path / f"run{snr}", tmp_path / "cache", store)
+    run(cfg, tmp_path / "run25", tmp_path / "cache", store)  # a rerun of a directory replaces its rows
+    assert len(list(store.iterdir())) == 2 and store_file(store, tmp_path / "run25").exists()
+    rows = pd.read_parquet(store)  # the dataset read whole, as any pandas user would
+    assert sorted(rows["scenario.snr_db"]) == [15.0, 25.0] and rows["matcher.taus"].eq('["chi2:0.01"]').all()
+    assert ((rows.found_rate_low <= rows.found_rate) & (rows.found_rate <= rows.found_rate_high)).all()
+    assert ((rows.p_d_low <= rows.p_d + 1e-12) & (rows.p_d <= rows.p_d_high + 1e-12)).all()
+    main([str(store), "--where", "scenario.snr_db == 15", "--columns", "matcher.method,found_rate"])
+    out = capsys.readouterr().out
+    assert out.count("| paper") == 1 and "found_rate" in out
+    main([str(store), "--where", "scenario.snr_db > 20", "--out", str(tmp_path / "sel.csv")])
+    assert pd.read_csv(tmp_path / "sel.csv")["scenario.snr_db"].tolist() == [25.0]
+    assert load(tmp_path / "run15")["scenario.snr_db"].tolist() == [15.0]  # a run directory's own rows
+    with pytest.raises(SystemExit) as exit_:
+        main([str(store), "--where", "snr_db ==="])
+    assert exit_.value.code == 2 and capsys.readouterr().err.startswith("error: --where 'snr_db ===' is invalid")
 
 
 def test_hydra_joblib_launcher_gives_each_cell_its_own_results_and_aggregates_them(tmp_path):
