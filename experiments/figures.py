@@ -8,13 +8,16 @@ ROC curves), ``fig1/examples_triangles.csv`` (Fig. 1, detections on both
 maps) and ``fig2/examples_landmarks.csv`` (Fig. 2, combined map vs ground
 truth) below RESULTS_DIR and writes ``fig1``/``fig2``/``fig3`` as PNG and
 PDF there. A directory holding ``roc.csv`` itself (any sweep's aggregate)
-gets ``roc.png``/``roc.pdf``: one panel per scenario and matcher, one curve
-per SNR, and its ``table.md`` is printed.
+gets ``roc.png``/``roc.pdf``: one panel per scenario and matcher (four
+side by side, then wrapping onto further rows), one curve per SNR, and its
+``table.md`` is printed; unrelated-map cells (no ROC curve) are named.
+``python -m experiments.plot`` draws any metric of any sweep.
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import matplotlib
@@ -54,7 +57,7 @@ CALIBRATED_RULE = "chi2:0.01"
 
 
 def fig3(roc: pd.DataFrame, auc: pd.DataFrame, out: Path, name: str = "fig3",
-         table: pd.DataFrame | None = None) -> list[Path]:
+         table: pd.DataFrame | None = None, wrap: int | None = None) -> list[Path]:
     """Monte Carlo ROC curves, one column per panel, one curve per SNR.
 
     Panels are the (landmarks, overlap, method, objective) combinations in
@@ -62,7 +65,8 @@ def fig3(roc: pd.DataFrame, auc: pd.DataFrame, out: Path, name: str = "fig3",
     row is the paper's linear plot; the bottom row repeats it with P_FA on
     a log scale, where the curves crowd the corner. With ``table``, the
     (P_FA, P_D) that the calibrated χ²₃ rule achieved is marked on each
-    curve.
+    curve. With ``wrap``, at most that many panels side by side: the rest
+    continue on further pairs of rows.
     """
     keys = ["n_landmarks", "overlap", "method", "objective"]
     panels = roc[keys].drop_duplicates().itertuples(index=False, name=None)
@@ -72,8 +76,13 @@ def fig3(roc: pd.DataFrame, auc: pd.DataFrame, out: Path, name: str = "fig3",
     snrs = sorted(roc["snr_db"].unique())
     cmap = plt.get_cmap("viridis")
     colours = {s: cmap(i / max(len(snrs) - 1, 1)) for i, s in enumerate(snrs)}
-    fig, axes = plt.subplots(2, len(panels), figsize=(2.6 * len(panels) + 0.4, 5.6), sharey=True, squeeze=False)
-    for col, ((n, ov, method, objective), letter) in enumerate(zip(panels, "abcdefghijklmnop")):
+    ncols = len(panels) if wrap is None else min(len(panels), wrap)
+    bands = -(-len(panels) // ncols)
+    fig, grid = plt.subplots(2 * bands, ncols, figsize=(2.6 * ncols + 0.4, 5.6 * bands), sharey=True,
+                             squeeze=False)
+    for i, (n, ov, method, objective) in enumerate(panels):
+        letter = chr(ord("a") + i) if i < 26 else str(i + 1)
+        axes, col = grid[2 * (i // ncols):2 * (i // ncols) + 2], i % ncols
         sel = {k: v for k, v in zip(keys, (n, ov, method, objective))}
 
         def rows(df):
@@ -108,7 +117,10 @@ def fig3(roc: pd.DataFrame, auc: pd.DataFrame, out: Path, name: str = "fig3",
         axes[0, col].legend(loc="lower right", frameon=False, handlelength=1.2, fontsize=5.5)
         axes[0, col].set_xlabel("$P_{FA}$")
         axes[1, col].set_xlabel("$P_{FA}$ (log scale)")
-    for ax in axes[:, 0]:
+    for i in range(len(panels), bands * ncols):  # the last band's empty places
+        for ax in grid[2 * (i // ncols):2 * (i // ncols) + 2, i % ncols]:
+            ax.set_visible(False)
+    for ax in grid[:, 0]:
         ax.set_ylabel("probability of detection $P_D$")
     if table is not None:
         fig.text(0.5, 0.005, f"circles: P_FA, P_D achieved by the calibrated rule τ = {CALIBRATED_RULE} "
@@ -195,11 +207,25 @@ def draw_all(results: Path) -> list[Path]:
     return made
 
 
-def draw_aggregate(directory: Path) -> list[Path]:
-    """``roc.png``/``.pdf`` of an aggregate directory (``roc.csv``, ``auc.csv``, ``table.csv``)."""
+def related_cells(tables: dict[str, pd.DataFrame]) -> dict[str, pd.DataFrame]:
+    """The tables' rows of related map pairs; the unrelated-map cells, which have no true pairs and so
+    no ROC curve, are named on stderr rather than dropped unseen."""
+    unrelated = tables["table"][tables["table"].unrelated.astype(bool)]
+    if len(unrelated):
+        cells = unrelated.drop_duplicates(["n_landmarks", "overlap", "snr_db", "method"])
+        print(f"note: {len(cells)} unrelated-map cell(s) have no true pairs, hence no ROC curve, and are not drawn "
+              "(plot their false_merge_rate with experiments.plot): " + "; ".join(
+                  f"{r.method} {r.n_landmarks} landmarks {r.overlap:.0%} {r.snr_db:g} dB"
+                  for r in cells.itertuples()), file=sys.stderr)
+    return {kind: t[~t.unrelated.astype(bool)] for kind, t in tables.items()}
+
+
+def draw_aggregate(directory: Path, wrap: int | None = 4) -> list[Path]:
+    """``roc.png``/``.pdf`` of an aggregate directory (``roc.csv``, ``auc.csv``, ``table.csv``), ``wrap``
+    panels side by side at most."""
+    tables = related_cells({kind: pd.read_csv(directory / f"{kind}.csv") for kind in ("roc", "auc", "table")})
     with plt.rc_context(STYLE):
-        return fig3(pd.read_csv(directory / "roc.csv"), pd.read_csv(directory / "auc.csv"), directory, "roc",
-                    table=pd.read_csv(directory / "table.csv"))
+        return fig3(tables["roc"], tables["auc"], directory, "roc", table=tables["table"], wrap=wrap)
 
 
 def main(argv=None) -> None:
