@@ -1,12 +1,15 @@
-"""The ``mapmerge`` command: merge two landmark map files.
+"""The ``mapmerge`` command: merge two or more landmark map files.
 
     mapmerge merge A.csv B.csv --sigma 0.02 -o merged.csv [--plot merged.png] [--json]
     mapmerge merge A.csv B.csv -o merged.csv   # both files give covariances: σ pooled from them
+    mapmerge merge A.csv B.csv C.csv ... --sigma 0.02 -o merged.csv   # a team: merge_many
     python -m mapmerge merge ...
 
-Reads two maps (``mapmerge.mapfiles``), runs ``merge_maps`` (method
-``consensus`` unless ``--method`` says otherwise) and writes the combined
-map in map A's frame. After a match it looks for a second rigid match among the
+Reads the maps (``mapmerge.mapfiles``), runs ``merge_maps`` on two
+(method ``consensus`` unless ``--method`` says otherwise) and writes the
+combined map in map A's frame; three or more go to ``merge_many`` (every
+pair merged, cycles checked, one joint solution) and the fused map is
+written in the frame of the first map placed. After a match it looks for a second rigid match among the
 landmarks left unpaired (``residual_match``) and warns when there is one:
 the maps are then bent, and the combined map aligns only the larger part.
 Before merging it compares the maps' landmark spacings (the median distance
@@ -17,7 +20,8 @@ refuses. After a merge by a method without an acceptance test of its own
 (``merging.UNTESTED_METHODS``) it warns when the landmark pairs do not agree
 on the one fitted rigid motion (``merging.rigid_check``).
 
-Exit status (``EXIT_*``): 0 matched, 1 no match (nothing written), 2 bad
+Exit status (``EXIT_*``): 0 matched (with three or more maps: at least two
+placed; each map left out is a warning), 1 no match (nothing written), 2 bad
 input, arguments or an output it cannot write, 3 an unexpected error (a bug:
 one line asking for a report, never a traceback).
 """
@@ -34,7 +38,8 @@ import numpy as np
 
 from . import __version__
 from ._validation import check_points
-from .mapfiles import LandmarkMap, MapFileError, read_map, write_map
+from .group import INCONSISTENT, merge_many
+from .mapfiles import LandmarkMap, MapFileError, read_map, write_group, write_map
 from .merging import (DEFAULT_TAU, METHODS, UNTESTED_METHODS, merge_maps, pooled_sigma, residual_match,
                       rigid_check)
 
@@ -59,12 +64,12 @@ def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="mapmerge", description="Match and merge stochastic landmark maps.")
     parser.add_argument("--version", action="version", version=f"mapmerge {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
-    merge = sub.add_parser("merge", help="merge map B into map A's frame",
-                           description="Merge map B into map A's frame and write the combined map. "
+    merge = sub.add_parser("merge", help="merge map B (and C, ...) into map A's frame",
+                           description="Merge map B into map A's frame and write the combined map; with three "
+                                       "or more maps, merge them all into one (in the first placed map's frame). "
                                        "Map files: CSV or TSV with a header; columns x, y, optional id, "
                                        "optional covariance sxx, sxy, syy or sigma.")
-    merge.add_argument("map_a", help="map p (CSV/TSV)")
-    merge.add_argument("map_b", help="map q (CSV/TSV)")
+    merge.add_argument("maps", nargs="+", metavar="MAP", help="two or more map files (CSV/TSV): A B [C ...]")
     merge.add_argument("--sigma", type=float, default=None,
                        help="per-coordinate standard deviation of a landmark, in map units; needed unless both "
                             "maps give covariances, whose RMS per-coordinate standard deviation is then used")
@@ -158,7 +163,7 @@ def with_std(value: float, std: float) -> str:
 def check_outputs(args) -> None:
     """Refuse, before any work, outputs that cannot be written: a missing directory, an input file
     overwritten, a table format other than CSV/TSV, a plot format matplotlib cannot write."""
-    inputs = {Path(name).resolve() for name in (args.map_a, args.map_b)}
+    inputs = {Path(name).resolve() for name in args.maps}
     for option, name in (("--output", args.output), ("--plot", args.plot)):
         if name is None:
             continue
@@ -199,9 +204,12 @@ def warn(message: str) -> None:
 
 def main(argv=None) -> int:
     """Run the command; returns its exit status (``EXIT_*``). Argument errors exit 2 through argparse."""
-    args = _parser().parse_args(argv)
+    parser = _parser()
+    args = parser.parse_args(argv)
+    if len(args.maps) < 2:
+        parser.error("merge needs at least two map files")
     try:
-        return _merge(args)
+        return _merge(args) if len(args.maps) == 2 else _merge_many(args)
     except MemoryError:
         print("mapmerge: error: out of memory; this is a bug (its cost should be bounded by the landmark "
               "counts): please report it with the command and the map files", file=sys.stderr)
@@ -216,7 +224,7 @@ def _merge(args) -> int:
     names = ["map a", "map b"]
     try:
         check_outputs(args)
-        (map_p, map_q), sigma = read_maps([args.map_a, args.map_b], args.sigma)
+        (map_p, map_q), sigma = read_maps(args.maps, args.sigma)
         scale, mismatch = scale_check([map_p, map_q], names)
         if mismatch and args.strict:
             raise ValueError(f"{mismatch} (refused: --strict)")
@@ -232,7 +240,7 @@ def _merge(args) -> int:
     if not res.matched:
         info["output"] = None
         print(json.dumps(info) if args.json else
-              f"no match: {args.map_b} could not be matched to {args.map_a} (method {res.method}); "
+              f"no match: {args.maps[1]} could not be matched to {args.maps[0]} (method {res.method}); "
               "nothing written", file=sys.stdout if args.json else sys.stderr)
         return EXIT_NO_MATCH
     second = residual_match(map_p.points, map_q.points, res, sigma, args.tau, map_p.cov, map_q.cov)
@@ -284,6 +292,81 @@ def _merge(args) -> int:
     for message in warnings:
         warn(message)
     return EXIT_MATCHED
+
+
+def _merge_many(args) -> int:
+    """Three or more maps: ``merge_many``, the fused map written, one line per map."""
+    try:
+        check_outputs(args)
+        maps, sigma = read_maps(args.maps, args.sigma)
+        scale, mismatch = scale_check(maps, args.maps)
+        if mismatch and args.strict:
+            raise ValueError(f"{mismatch} (refused: --strict)")
+        covs = None if maps[0].cov is None else [m.cov for m in maps]
+        group = merge_many([m.points for m in maps], None if covs is not None and args.sigma is None else sigma,
+                           covs, method=args.method, tau=args.tau, rng=args.seed)
+    except (MapFileError, ValueError, ImportError) as exc:
+        print(f"mapmerge: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    warnings = [mismatch] if mismatch else []
+    warnings += [f"{args.maps[e.i]} and {args.maps[e.j]} matched, but their motion disagrees with the others' "
+                 "around a cycle: that match was not used" for e in group.edges if e.status == INCONSISTENT]
+    warnings += [f"{path} matched no other map: left out of the fused map"
+                 for path, placed in zip(args.maps, group.placed) if not placed]
+    info = {"matched": group.n_placed >= 2, "method": args.method, "sigma": float(sigma), "scale": scale,
+            "reference": args.maps[group.reference], "edges": group.edge_counts(), "maps": [],
+            "landmarks": int(len(group.merged)), "units": JSON_UNITS, "warnings": warnings}
+    for k, path in enumerate(args.maps):
+        std = np.sqrt(np.diag(group.frame_cov[k]))
+        info["maps"].append({"file": path, "placed": bool(group.placed[k]), "theta": float(group.theta[k]),
+                             "theta_std": float(std[0]), "theta_deg": float(np.degrees(group.theta[k])),
+                             "theta_std_deg": float(np.degrees(std[0])), "t": [float(v) for v in group.t[k]],
+                             "t_std": [float(v) for v in std[1:]],
+                             "landmarks_shared": int(((group.tracks[:, k] >= 0)
+                                                      & ((group.tracks >= 0).sum(axis=1) >= 2)).sum())})
+    if not info["matched"]:
+        info["output"] = None
+        print(json.dumps(_finite(info)) if args.json else
+              f"no match: none of the {len(args.maps)} maps could be matched to another (method {args.method}); "
+              "nothing written", file=sys.stdout if args.json else sys.stderr)
+        return EXIT_NO_MATCH
+    try:
+        info["output"] = str(write_group(group, args.output, maps))
+        if args.plot:
+            from .plotting import plot_group
+
+            info["plot"] = str(plot_group(group, [m.points for m in maps], args.plot, args.maps))
+    except OSError as exc:
+        print(f"mapmerge: error: cannot write {exc.filename or args.output}: {exc.strerror or exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    if args.json:
+        print(json.dumps(_finite(info)))
+    else:
+        print(f"merged {group.n_placed} of {len(maps)} maps ({args.method}) in {info['reference']}'s frame "
+              f"[map ≈ R(theta) x + t]; {info['edges']['accepted']} pairwise matches used")
+        for m in info["maps"]:
+            if m["placed"]:
+                print(f"  {m['file']}: theta = {with_std(m['theta_deg'], m['theta_std_deg'])} deg, "
+                      f"t = ({with_std(m['t'][0], m['t_std'][0])}, {with_std(m['t'][1], m['t_std'][1])}); "
+                      f"{m['landmarks_shared']} landmarks shared with other maps")
+            else:
+                print(f"  {m['file']}: not placed")
+        print(f"fused map: {len(group.merged)} landmarks -> {info['output']}"
+              + (f"; plot -> {info['plot']}" if args.plot else ""))
+    for message in warnings:
+        warn(message)
+    return EXIT_MATCHED
+
+
+def _finite(value):
+    """``value`` with NaN (an unplaced map's frame) as None, so that ``--json`` prints valid JSON."""
+    if isinstance(value, float):
+        return None if math.isnan(value) else value
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_finite(v) for v in value]
+    return value
 
 
 if __name__ == "__main__":

@@ -187,3 +187,37 @@ def write_map(result: MergeResult, path, map_p: LandmarkMap | None = None, map_q
     path = Path(path)
     combined_table(result, map_p, map_q).to_csv(path, index=False, sep="\t" if path.suffix.lower() == ".tsv" else ",")
     return path
+
+
+def group_table(group, maps: list[LandmarkMap]):
+    """The fused map of ``merge_many`` as a table: x, y, n_maps, index_0 .. index_{N-1}[, id_k], sxx, sxy, syy.
+
+    ``index_k`` is the 0-based row of the landmark in map k (-1: not in it), ``n_maps`` how many maps
+    hold it; ``id_k`` is map k's ``id`` column where it has one.
+
+    Raises
+    ------
+    ValueError
+        If ``maps`` are not the ``LandmarkMap`` list that was merged.
+    """
+    import pandas as pd
+
+    tracks = group.tracks
+    if len(maps) != tracks.shape[1] or any(not isinstance(m, LandmarkMap) or tracks[:, k].max(initial=-1)
+                                           >= len(m.points) for k, m in enumerate(maps)):
+        raise ValueError(f"maps must be the {tracks.shape[1]} LandmarkMap (read_map) that were merged")
+    table = pd.DataFrame({"x": group.merged[:, 0], "y": group.merged[:, 1], "n_maps": (tracks >= 0).sum(axis=1)})
+    for k, m in enumerate(maps):
+        table[f"index_{k}"] = tracks[:, k]
+        if m.ids is not None:
+            table[f"id_{k}"] = np.where(tracks[:, k] >= 0, m.ids[np.maximum(tracks[:, k], 0)], "")
+    cov = group.merged_cov
+    table["sxx"], table["sxy"], table["syy"] = cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]
+    return table
+
+
+def write_group(group, path, maps: list[LandmarkMap]):
+    """Write ``group_table`` as CSV, or TSV for a ``.tsv`` name (numbers in full, as ``write_map``)."""
+    path = Path(path)
+    group_table(group, maps).to_csv(path, index=False, sep="\t" if path.suffix.lower() == ".tsv" else ",")
+    return path

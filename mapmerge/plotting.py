@@ -1,4 +1,4 @@
-"""A picture of one merge: both maps in p's frame, fused pairs linked (needs matplotlib)."""
+"""Pictures of a merge (needs matplotlib): two maps in p's frame, fused pairs linked; or every map of a team."""
 
 from __future__ import annotations
 
@@ -50,5 +50,44 @@ def plot_merge(res: MergeResult, P: np.ndarray, Q: np.ndarray, path) -> Path:
     fig.tight_layout()
     path = Path(path)
     fig.savefig(path, metadata={"Software": None} if path.suffix.lower() == ".png" else None)
+    plt.close(fig)
+    return path
+
+
+def plot_group(group, maps, path, names=None) -> Path:
+    """Draw every placed map of a ``merge_many`` result in the reference frame, one colour per map.
+
+    Parameters
+    ----------
+    group : GroupMerge
+    maps : sequence of (n_i, 2) ndarray
+        The maps as merged.
+    path : path
+        Image file (PNG, PDF, ...).
+    names : sequence of str, optional
+        Legend labels (default ``map 0``, ``map 1``, ...).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = [f"map {k}" for k in range(len(maps))] if names is None else list(names)
+    fig, ax = plt.subplots(figsize=(5.6, 4.6))
+    markers = "o x s + ^ D v * < >".split()
+    for k in np.flatnonzero(group.placed):
+        x = rotate(-group.theta[k], np.asarray(maps[k], dtype=float) - group.t[k])
+        ax.scatter(*x.T, s=14, marker=markers[k % len(markers)], lw=0.8, label=f"{names[k]} ({len(x)})")
+    shared = (group.tracks >= 0).sum(axis=1) >= 2
+    ax.scatter(*group.merged[shared].T, s=40, facecolors="none", edgecolors="0.2", lw=0.6,
+               label=f"fused, seen by 2+ maps ({int(shared.sum())})")
+    ax.set_aspect("equal")
+    ax.set_xlabel(f"x in {names[group.reference]}'s frame")
+    ax.set_ylabel(f"y in {names[group.reference]}'s frame")
+    ax.set_title(f"{group.n_placed} of {len(maps)} maps placed, {len(group.merged)} landmarks", fontsize=9)
+    ax.legend(fontsize=7, frameon=False, loc="center left", bbox_to_anchor=(1.02, 0.5))
+    path = Path(path)
+    # The legend sits outside the axes: the saved box grows to hold it.
+    fig.savefig(path, bbox_inches="tight", metadata={"Software": None} if path.suffix.lower() == ".png" else None)
     plt.close(fig)
     return path

@@ -323,3 +323,45 @@ def test_a_wrong_paper_merge_is_flagged_and_json_names_its_units(tmp_path, capsy
 ])
 def test_numbers_are_printed_to_the_digits_their_uncertainty_supports(value, std, text):
     assert mm.cli.with_std(value, std) == text
+
+
+def _team_files(tmp_path, n_strangers=1, **kwargs):
+    team = mm.simulate.make_group(4, 60, 0.5, 25, topology="ring", n_strangers=n_strangers, rng=3, **kwargs)
+    paths = []
+    for k, m in enumerate(team.maps):
+        paths.append(tmp_path / f"m{k}.csv")
+        pd.DataFrame({"x": m[:, 0], "y": m[:, 1]}).to_csv(paths[-1], index=False)
+    return team, [str(p) for p in paths]
+
+
+def test_merge_of_many_files_writes_the_fused_map_and_names_the_map_left_out(tmp_path, capsys):
+    team, paths = _team_files(tmp_path)
+    out = tmp_path / "fused.csv"
+    assert main(["merge", *paths, "--sigma", str(team.sigma), "-o", str(out), "--json"]) == 0
+    captured = capsys.readouterr()
+    info = json.loads(captured.out)
+    assert [m["placed"] for m in info["maps"]] == [True] * 4 + [False]
+    assert info["maps"][4]["theta"] is None and "m4.csv matched no other map" in captured.err
+    table = pd.read_csv(out)
+    group = mm.merge_many(team.maps, team.sigma)
+    assert len(table) == len(group.merged) == info["landmarks"]
+    np.testing.assert_array_equal(table[[f"index_{k}" for k in range(5)]].to_numpy(), group.tracks)
+    np.testing.assert_allclose(table[["x", "y"]].to_numpy(), group.merged, rtol=1e-15)
+    assert (table.index_4 == -1).all() and (table.n_maps == (group.tracks >= 0).sum(axis=1)).all()
+
+
+def test_merge_of_many_unrelated_files_is_no_match_and_writes_nothing(tmp_path, capsys):
+    maps = [mm.simulate.make_group(2, 40, 0.5, 30, rng=k).maps[0] for k in range(3)]
+    paths = []
+    for k, m in enumerate(maps):
+        paths.append(str(tmp_path / f"u{k}.csv"))
+        pd.DataFrame({"x": m[:, 0], "y": m[:, 1]}).to_csv(paths[-1], index=False)
+    out = tmp_path / "fused.csv"
+    assert main(["merge", *paths, "--sigma", "0.05", "-o", str(out)]) == 1
+    assert "no match: none of the 3 maps" in capsys.readouterr().err and not out.exists()
+
+
+def test_merge_needs_two_files(tmp_path, capsys):
+    with pytest.raises(SystemExit) as stop:
+        main(["merge", str(tmp_path / "a.csv"), "-o", str(tmp_path / "o.csv")])
+    assert stop.value.code == 2 and "at least two map files" in capsys.readouterr().err
