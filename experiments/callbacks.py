@@ -5,7 +5,8 @@ every multirun under that name, from every run below the sweep directory
 (``experiments.aggregate`` takes the union of the distinct trials of a cell
 run several times), so a later, smaller sweep never replaces an earlier
 one's table. ``aggregate_dir=DIR`` instead aggregates exactly the runs this
-multirun wrote (what the drivers that write ``results/`` ask for).
+multirun wrote (what the drivers that write ``results/`` ask for). The
+sweep's overall progress bar opens and closes here (``experiments.progress``).
 """
 
 from __future__ import annotations
@@ -18,6 +19,8 @@ from pathlib import Path
 from hydra.core.utils import JobStatus
 from hydra.experimental.callback import Callback
 from omegaconf import OmegaConf
+
+from . import progress
 
 log = logging.getLogger(__name__)
 
@@ -32,12 +35,15 @@ class AggregateOnMultirunEnd(Callback):
 
     def on_multirun_start(self, config, **kwargs) -> None:
         self.started = time.time()
+        progress.start_sweep(config)
 
     def on_job_end(self, config, job_return, **kwargs) -> None:
         if job_return.status != JobStatus.COMPLETED:
             self.failed += 1
+        progress.cell_done()
 
     def on_multirun_end(self, config, **kwargs) -> None:
+        progress.end_sweep()
         if self.failed:
             log.warning("%d job(s) failed: not aggregating", self.failed)
             return

@@ -25,13 +25,18 @@ LAUNCHER_EXTRAS = {"submitit_slurm": ("hydra_plugins.hydra_submitit_launcher", "
                    "submitit_local": ("hydra_plugins.hydra_submitit_launcher", "launchers")}
 
 
-def preflight(argv: list[str]) -> None:
+def preflight(argv: list[str]) -> list[int]:
     """Compose and validate every job a command would launch, writing nothing.
 
     Parameters
     ----------
     argv : list of str
         The command line of ``python -m experiments.run`` (without the program name).
+
+    Returns
+    -------
+    list of int
+        Each job's ``mc.n_trials``, in launch order (the sweep's progress totals).
 
     Raises
     ------
@@ -57,6 +62,7 @@ def preflight(argv: list[str]) -> None:
                 params = [f"{k}={v}" for k, v in (base.hydra.sweeper.get("params") or {}).items()]
                 jobs = sweep_jobs(parser.parse_overrides(params) + parsed)
                 applied = {(o.get_key_element(), o.get_value_element_as_str()) for o in plain}
+            trials = []
             for job in jobs:
                 cfg = None
                 if base is not None:
@@ -67,10 +73,12 @@ def preflight(argv: list[str]) -> None:
                     cfg = compose("config", overrides=job, return_hydra_config=True)
                 validate(cfg)
                 check_launcher(cfg)
+                trials.append(cfg.mc.n_trials)
     except ConfigError:
         raise
     except Exception as exc:  # Hydra's and OmegaConf's errors span several lines
         raise ConfigError(one_line(exc)) from None
+    return trials
 
 
 def sweep_jobs(overrides) -> list[list[str]]:

@@ -40,6 +40,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
+from . import progress
 from .preflight import preflight
 from .schema import CONF_DIR, ConfigError, register_configs, validate
 
@@ -189,6 +190,7 @@ def run(cfg: DictConfig, output_dir: str | Path, cache_dir: str | Path | None = 
         "cell %s: %d trials, %d cached, %d to run in %d chunks, n_jobs=%d backend=%s",
         scenario, n, n - n_missing, n_missing, len(todo), cfg.mc.n_jobs, str(cfg.mc.backend),
     )
+    progress.cell_started(n - n_missing)
     fresh = {}  # the chunks this process computed or received, kept rather than read back
     if todo:
         try:
@@ -309,9 +311,11 @@ def _run_chunks(cfg, scenario: dict, matcher: dict, todo, stem) -> dict:
                                            arithmetic_digest())
                 for a, b in todo)
         results = joblib.Parallel(return_as="generator_unordered")(jobs)
+        # Below the sweep's overall bar, when there is one, and gone when the cell is done.
         with tqdm(
             total=sum(b - a for a, b in todo), unit="trial", desc=f"{cfg.name}",
-            disable=not cfg.mc.progress, file=sys.stderr,
+            disable=not progress.enabled(cfg.mc.progress), file=sys.stderr,
+            position=1 if progress.active() else None, leave=not progress.active(),
         ) as bar:
             for a, b, frames, tables in results:
                 if frames is not None:
@@ -319,6 +323,7 @@ def _run_chunks(cfg, scenario: dict, matcher: dict, todo, stem) -> dict:
                 if tables is not None:
                     fresh[a, b] = tables
                 bar.update(b - a)
+                progress.trials_done(b - a)
     return fresh
 
 
@@ -363,6 +368,7 @@ def main(cfg: DictConfig) -> None:
 
     from .results import STORE
 
+    progress.set_quiet(HydraConfig.get().overrides.hydra)
     root = Path(cfg.output_root)
     path = run(cfg, HydraConfig.get().runtime.output_dir, cache_dir=root / "cache" / "trials",
                store_dir=root / STORE)
@@ -388,7 +394,7 @@ def cli() -> None:
                    "--config-dir", "-cd", "--experimental-rerun"}
     if not passthrough.intersection(sys.argv[1:]):
         try:
-            preflight(sys.argv[1:])
+            progress.plan(preflight(sys.argv[1:]))
         except ConfigError as exc:
             print(f"error: {exc}", file=sys.stderr)
             raise SystemExit(2) from None

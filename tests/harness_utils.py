@@ -29,8 +29,8 @@ def small(**mc):
     return compose_config(overrides)
 
 
-def cli(args, cwd, timeout=120):
-    """``python -m experiments.run ARGS`` in ``cwd``."""
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+def cli(args, cwd, timeout=120, **environ):
+    """``python -m experiments.run ARGS`` in ``cwd`` (``environ``: variables set for it)."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT), **environ}
     return subprocess.run([sys.executable, "-m", "experiments.run", *args], cwd=cwd, env=env,
                           capture_output=True, text=True, timeout=timeout)

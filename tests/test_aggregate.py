@@ -233,11 +233,14 @@ def test_aggregating_a_directory_without_runs_is_one_line_and_exit_2(tmp_path, c
 def test_two_sweeps_under_one_name_keep_every_cell_of_both(tmp_path):
     from experiments.aggregate import main
 
-    common = ["-m", "name=mine", "scenario=small", "matcher.taus=[chi2:0.01]", "mc.n_jobs=1", "mc.progress=false"]
-    first = cli([*common, "scenario.snr_db=20,30", "mc.n_trials=8"], tmp_path)
+    common = ["-m", "name=mine", "scenario=small", "matcher.taus=[chi2:0.01]", "mc.n_jobs=1"]
+    first = cli([*common, "scenario.snr_db=20,30", "mc.n_trials=8"], tmp_path, CI="")
     # The second sweep overlaps the first (the 30 dB cell, 8 of its 12 trials): its aggregate is the union.
-    second = cli([*common, "scenario.snr_db=30,40", "mc.n_trials=12"], tmp_path)
+    second = cli([*common, "scenario.snr_db=30,40", "mc.n_trials=12"], tmp_path, CI="true")
     assert first.returncode == 0 and second.returncode == 0, first.stderr[-2000:] + second.stderr[-2000:]
+    # One overall bar (trials to run, rate, cells done) besides each cell's; none in CI.
+    assert "sweep: 100%" in first.stderr and "16/16 [" in first.stderr and "cells 2/2" in first.stderr
+    assert "trial/s" not in second.stderr
     sweep = tmp_path / "outputs" / "sweeps" / "mine"
     table = pd.read_csv(sweep / "aggregate" / "table.csv")
     assert dict(zip(table.snr_db, table.n_trials)) == {20: 8, 30: 12, 40: 12}

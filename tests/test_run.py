@@ -55,6 +55,19 @@ def test_more_trials_compute_only_the_new_ones_and_equal_a_fresh_run(tmp_path, c
                                   pd.read_parquet(fresh / "pairs.parquet").query("trial < 20").reset_index(drop=True))
 
 
+def test_progress_bars_are_quiet_in_ci_and_with_hydra_verbose_false(monkeypatch):
+    from experiments import progress
+
+    monkeypatch.delenv("CI", raising=False)
+    progress.set_quiet(["hydra.run.dir=x"])
+    assert progress.enabled(True) and not progress.enabled(False)
+    progress.set_quiet(["hydra.verbose=false"])
+    assert not progress.enabled(True)
+    progress.set_quiet([])
+    monkeypatch.setenv("CI", "true")
+    assert not progress.enabled(True)
+
+
 def test_cover_reads_cached_chunks_and_lists_the_gaps():
     from experiments.run import cover
 
