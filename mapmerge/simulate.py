@@ -668,8 +668,8 @@ def make_group(n_agents: int = 5, n_landmarks: int = 100, overlap: float = 0.5, 
     so landmarks only one agent holds lie among the shared ones. Each agent's
     frame is the world through a uniform random rotation and a translation
     uniform over the world's extent, then N(0, σ²) noise per coordinate, σ from
-    ``snr_db`` over the Delaunay graph of all landmarks the team holds, as in
-    ``make_pair``. ``n_strangers`` more agents map discs of worlds of their
+    ``snr_db`` as in ``make_pair`` with σ̄² the mean over agents of the edge-length
+    variance of the Delaunay graph of the agent's own true landmarks. ``n_strangers`` more agents map discs of worlds of their
     own (same size, density and σ): they share nothing with the team.
 
     The random draws, in order: the random topology's placements, the world's
@@ -721,7 +721,10 @@ def make_group(n_agents: int = 5, n_landmarks: int = 100, overlap: float = 0.5, 
     centres = _window_centres(n_agents, topology, _neighbour_distance(overlap, r), rng)
     world = _window_landmarks(centres, r, 1.0 / detect, rng)
     seen = [(np.sum((world - c) ** 2, axis=1) <= r * r) & (rng.random(len(world)) < detect) for c in centres]
-    sigma, _ = sigma_from_snr(world[np.any(seen, axis=0)], float(snr_db))
+    # σ̄² of each agent's own disc, averaged: the union of the discs is not convex, and its Delaunay
+    # graph would bridge the gaps between them with long edges (a chain's σ̄² twice a ring's).
+    sigma_bar2 = np.mean([sigma_from_snr(world[s], 0.0)[1] for s in seen])
+    sigma = float(np.sqrt(sigma_bar2 / (2.0 * 10.0 ** (float(snr_db) / 10.0))))
     truth, ids, centre = [world], [np.flatnonzero(s) for s in seen], list(centres)
     extent = float(np.max(np.ptp(world, axis=0)))
     maps, theta, t = [], [], []
