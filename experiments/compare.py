@@ -59,7 +59,6 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
-from scipy.stats import norm  # noqa: E402
 
 from .aggregate import markdown, runs_since, save_table, with_timing  # noqa: E402
 from .figures import STYLE, _save  # noqa: E402

@@ -39,7 +39,6 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from .figures import CALIBRATED_RULE, STYLE, fig3, related_cells  # noqa: E402

@@ -196,7 +196,7 @@ def select(rows: pd.DataFrame, where: str | None) -> pd.DataFrame:
         return rows
     try:
         return rows.query(quoted(where, rows.columns))
-    except Exception as exc:  # pandas raises many types (SyntaxError, UndefinedVariableError, ...)
+    except (SyntaxError, pd.errors.UndefinedVariableError, KeyError, TypeError, ValueError) as exc:
         raise ValueError(f"--where {where!r} is invalid: {' '.join(str(exc).split())}") from None
 
 
