@@ -175,3 +175,27 @@ def test_the_readme_team_example_prints_what_the_readme_shows(capsys):
     shown = re.search(r"prints\n\n```\n(.*?)```", section, re.DOTALL).group(1)
     exec(code, {})
     assert capsys.readouterr().out == shown
+
+
+def test_joint_ml_is_the_least_squares_optimum():
+    """The Gauss-Newton solution against scipy's least_squares on the same observations (no Huber weight
+    is active at this SNR)."""
+    from scipy.optimize import least_squares
+
+    team = mm.simulate.make_group(3, 40, 0.6, 30, topology="chain", rng=8)
+    g = group.assemble(team.maps, _variances(team), _true_edges(team, [(0, 1), (1, 2), (0, 2)]), 0, "joint")
+    multi = (g.tracks >= 0).sum(axis=1) >= 2
+    k, owner = np.nonzero(g.tracks[multi] >= 0)
+    z = np.stack([team.maps[i][r] for i, r in zip(owner, g.tracks[multi][k, owner])])
+
+    def residuals(v):
+        poses = np.concatenate([np.zeros(3), v[:6]]).reshape(3, 3)
+        x = v[6:].reshape(-1, 2)
+        return ((mm.alignment.rotate(poses[owner, 0], x[k][:, None])[:, 0] + poses[owner, 1:] - z)
+                / team.sigma).ravel()
+
+    start = np.concatenate([np.concatenate([g.theta[1:, None], g.t[1:]], axis=1).ravel(), g.merged[multi].ravel()])
+    start[:6] += 1e-3  # away from the answer, so that least_squares has work to do
+    ls = least_squares(residuals, start, xtol=1e-15, ftol=1e-15, gtol=1e-15)
+    np.testing.assert_allclose(ls.x[:6], start[:6] - 1e-3, atol=1e-9)
+    np.testing.assert_allclose(ls.x[6:], g.merged[multi].ravel(), atol=1e-9)
