@@ -220,16 +220,27 @@ def main(argv=None) -> int:
     return EXIT_BUG
 
 
+def _inputs(args, names: list[str]):
+    """The checked outputs, the maps read, σ, and the scale check's record and warning (or None);
+    ``--strict`` makes the warning a refusal. Raises ``MapFileError``/``ValueError`` on bad input."""
+    check_outputs(args)
+    maps, sigma = read_maps(args.maps, args.sigma)
+    scale, mismatch = scale_check(maps, names)
+    if mismatch and args.strict:
+        raise ValueError(f"{mismatch} (refused: --strict)")
+    if mismatch:
+        warn(mismatch)
+    return maps, sigma, scale, mismatch
+
+
+def _frame(theta_deg: float, theta_std_deg: float, t, t_std) -> str:
+    return (f"theta = {with_std(theta_deg, theta_std_deg)} deg, "
+            f"t = ({with_std(t[0], t_std[0])}, {with_std(t[1], t_std[1])})")
+
+
 def _merge(args) -> int:
-    names = ["map a", "map b"]
     try:
-        check_outputs(args)
-        (map_p, map_q), sigma = read_maps(args.maps, args.sigma)
-        scale, mismatch = scale_check([map_p, map_q], names)
-        if mismatch and args.strict:
-            raise ValueError(f"{mismatch} (refused: --strict)")
-        if mismatch:
-            warn(mismatch)
+        (map_p, map_q), sigma, scale, mismatch = _inputs(args, ["map a", "map b"])
         res = merge_maps(map_p.points, map_q.points, sigma, tau=args.tau, method=args.method,
                          cov_p=map_p.cov, cov_q=map_q.cov, rng=args.seed)
     except (MapFileError, ValueError, ImportError) as exc:
@@ -280,10 +291,8 @@ def _merge(args) -> int:
     if args.json:
         print(json.dumps(info))
     else:
-        t, t_std = info["t"], info["t_std"]
-        print(f"matched ({res.method}): theta = {with_std(info['theta_deg'], info['theta_std_deg'])} deg, "
-              f"t = ({with_std(t[0], t_std[0])}, {with_std(t[1], t_std[1])}) "
-              f"[q ≈ R(theta) p + t]; {info['pairs']} landmark pairs, {info['conflicts']} "
+        frame = _frame(info["theta_deg"], info["theta_std_deg"], info["t"], info["t_std"])
+        print(f"matched ({res.method}): {frame} [q ≈ R(theta) p + t]; {info['pairs']} landmark pairs, {info['conflicts']} "
               f"conflict{'' if info['conflicts'] == 1 else 's'}")
         if args.sigma is None:
             print(f"sigma = {info['sigma']:.6g} (RMS of the maps' own standard deviations)")
@@ -297,25 +306,21 @@ def _merge(args) -> int:
 def _merge_many(args) -> int:
     """Three or more maps: ``merge_many``, the fused map written, one line per map."""
     try:
-        check_outputs(args)
-        maps, sigma = read_maps(args.maps, args.sigma)
-        scale, mismatch = scale_check(maps, args.maps)
-        if mismatch and args.strict:
-            raise ValueError(f"{mismatch} (refused: --strict)")
+        maps, sigma, scale, mismatch = _inputs(args, args.maps)
         covs = None if maps[0].cov is None else [m.cov for m in maps]
         group = merge_many([m.points for m in maps], None if covs is not None and args.sigma is None else sigma,
                            covs, method=args.method, tau=args.tau, rng=args.seed)
     except (MapFileError, ValueError, ImportError) as exc:
         print(f"mapmerge: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    warnings = [mismatch] if mismatch else []
-    warnings += [f"{args.maps[e.i]} and {args.maps[e.j]} matched, but their motion disagrees with the others' "
+    warnings = [f"{args.maps[e.i]} and {args.maps[e.j]} matched, but their motion disagrees with the others' "
                  "around a cycle: that match was not used" for e in group.edges if e.status == INCONSISTENT]
     warnings += [f"{path} matched no other map: left out of the fused map"
                  for path, placed in zip(args.maps, group.placed) if not placed]
     info = {"matched": group.n_placed >= 2, "method": args.method, "sigma": float(sigma), "scale": scale,
             "reference": args.maps[group.reference], "edges": group.edge_counts(), "maps": [],
-            "landmarks": int(len(group.merged)), "units": JSON_UNITS, "warnings": warnings}
+            "landmarks": int(len(group.merged)), "units": JSON_UNITS,
+            "warnings": ([mismatch] if mismatch else []) + warnings}
     for k, path in enumerate(args.maps):
         std = np.sqrt(np.diag(group.frame_cov[k]))
         info["maps"].append({"file": path, "placed": bool(group.placed[k]), "theta": float(group.theta[k]),
@@ -346,8 +351,7 @@ def _merge_many(args) -> int:
               f"[map ≈ R(theta) x + t]; {info['edges']['accepted']} pairwise matches used")
         for m in info["maps"]:
             if m["placed"]:
-                print(f"  {m['file']}: theta = {with_std(m['theta_deg'], m['theta_std_deg'])} deg, "
-                      f"t = ({with_std(m['t'][0], m['t_std'][0])}, {with_std(m['t'][1], m['t_std'][1])}); "
+                print(f"  {m['file']}: {_frame(m['theta_deg'], m['theta_std_deg'], m['t'], m['t_std'])}; "
                       f"{m['landmarks_shared']} landmarks shared with other maps")
             else:
                 print(f"  {m['file']}: not placed")

@@ -74,7 +74,7 @@ def plot_group(group, maps, path, names=None) -> Path:
 
     names = [f"map {k}" for k in range(len(maps))] if names is None else list(names)
     fig, ax = plt.subplots(figsize=(5.6, 4.6))
-    markers = "o x s + ^ D v * < >".split()
+    markers = ["o", "x", "s", "+", "^", "D", "v", "*", "<", ">"]
     for k in np.flatnonzero(group.placed):
         x = rotate(-group.theta[k], np.asarray(maps[k], dtype=float) - group.t[k])
         ax.scatter(*x.T, s=14, marker=markers[k % len(markers)], lw=0.8, label=f"{names[k]} ({len(x)})")
