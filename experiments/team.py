@@ -56,8 +56,9 @@ N_LANDMARKS, OVERLAP = 100, 0.5
 #: (n_agents, snr_db, topology, n_strangers) of every cell: the headline cells (``--headline-teams`` teams)
 #: and the grid (``--teams``).
 HEADLINE = [(5, 20.0, "ring", 0), (5, 20.0, "ring", 1)]
-GRID = [cell for cell in ([(n, snr, top, 0) for top in ("ring", "random") for snr in (15.0, 20.0, 30.0)
-                          for n in (3, 5, 10, 20)] + [(n, 20.0, top, 0) for top in ("chain", "star") for n in (3, 5, 10, 20)])
+AGENTS = (3, 5, 10, 20)
+GRID = [cell for cell in ([(n, snr, top, 0) for top in ("ring", "random") for snr in (15.0, 20.0, 30.0) for n in AGENTS]
+                          + [(n, 20.0, top, 0) for top in ("chain", "star") for n in AGENTS])
         if cell not in HEADLINE]
 SPEED_AGENTS, SPEED_TEAMS = 20, 3
 
@@ -145,7 +146,8 @@ def summary(rows: pd.DataFrame) -> pd.DataFrame:
             out.append({
                 **dict(zip(keys, cell)), "placement": placement, "teams": len(r),
                 "all_correct": r.all_correct.mean(), "all_correct_95": f"[{low[0]:.3f}, {high[0]:.3f}]",
-                "wrong": int(r.placed_wrong.sum()), "beyond_cov": int(r.beyond_cov.sum()), "unplaced": int(r.unplaced.sum()),
+                "wrong": int(r.placed_wrong.sum()), "beyond_cov": int(r.beyond_cov.sum()),
+                "unplaced": int(r.unplaced.sum()),
                 "strangers_placed": int(r.strangers_placed.sum()), "purity": r.track_purity.mean(),
                 "completeness": r.track_completeness.mean(), "shared_rmse": r.shared_rmse.mean(), **ratios,
                 "edges_inconsistent": int(r.edges_inconsistent.sum()),
@@ -159,11 +161,13 @@ def headline(table: pd.DataFrame) -> str:
     lines = ["# Teams of agents: merge_many against chaining and a spanning tree", "",
              "Share of teams with every agent placed correctly (joint / tree / chain), wrong placements "
              "(rotation over 1° or RMS registration over σ), those of them outside their own covariance's "
-             "99.9 % region, team agents left unplaced, strangers placed, and the fused map's RMSE over landmarks seen twice or more (joint, in σ) "
+             "99.9 % region, team agents left unplaced, strangers placed, and the fused map's RMSE over "
+             "landmarks seen twice or more (joint, in σ) "
              "with its ratio to the chain's and the tree's (95 % intervals). 100 landmarks per map, "
              "neighbours sharing half their disc, `consensus` pairwise merges.", "",
              "| agents | SNR (dB) | topology | strangers | teams | all correct (j / t / c) | wrong (j / t / c) "
-             "| beyond own covariance (j / t / c) | unplaced (j) | strangers placed (j) | RMSE joint (σ) | joint / chain | joint / tree |",
+             "| beyond own covariance (j / t / c) | unplaced (j) | strangers placed (j) | RMSE joint (σ) "
+             "| joint / chain | joint / tree |",
              "|---:|---:|:---|---:|---:|:---|:---|:---|---:|---:|---:|:---|:---|"]
     for _, g in table.groupby(["topology", "n_strangers", "snr_db", "n_agents"], sort=True):
         by = g.set_index("placement")
@@ -172,7 +176,8 @@ def headline(table: pd.DataFrame) -> str:
             f"| {j.n_agents} | {j.snr_db:g} | {j.topology} | {j.n_strangers} | {j.teams} "
             f"| {' / '.join(f'{by.loc[p].all_correct:.3f}' for p in group.PLACEMENTS)} "
             f"| {' / '.join(str(by.loc[p].wrong) for p in group.PLACEMENTS)} "
-            f"| {' / '.join(str(by.loc[p].beyond_cov) for p in group.PLACEMENTS)} | {j.unplaced} | {j.strangers_placed} "
+            f"| {' / '.join(str(by.loc[p].beyond_cov) for p in group.PLACEMENTS)} "
+            f"| {j.unplaced} | {j.strangers_placed} "
             f"| {j.shared_rmse:.3f} | {j.rmse_vs_chain} | {j.rmse_vs_tree} |")
     return "\n".join(lines) + "\n"
 

@@ -292,7 +292,8 @@ def _merge(args) -> int:
         print(json.dumps(info))
     else:
         frame = _frame(info["theta_deg"], info["theta_std_deg"], info["t"], info["t_std"])
-        print(f"matched ({res.method}): {frame} [q ≈ R(theta) p + t]; {info['pairs']} landmark pairs, {info['conflicts']} "
+        print(f"matched ({res.method}): {frame} [q ≈ R(theta) p + t]; {info['pairs']} landmark pairs, "
+              f"{info['conflicts']} "
               f"conflict{'' if info['conflicts'] == 1 else 's'}")
         if args.sigma is None:
             print(f"sigma = {info['sigma']:.6g} (RMS of the maps' own standard deviations)")

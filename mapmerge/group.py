@@ -683,7 +683,7 @@ class _System:
         return S, dp, np.einsum("kij,kj->ki", Dinv, gx - back)
 
     def landmark_covariances(self, S_inv):
-        """Each landmark's covariance D⁻¹ + (B D⁻¹)ᵀ S⁻¹ (B D⁻¹), from the last ``step``'s linearisation."""
+        """Each landmark's covariance D⁻¹ + (B D⁻¹)ᵀ S⁻¹ (B D⁻¹), at the last ``step``'s linearisation."""
         k, s, f = self.k, self.s, self.free
         blocks = S_inv.reshape(self.P, 3, self.P, 3).transpose(0, 2, 1, 3)
         where = np.empty(len(k), np.intp)
