@@ -71,16 +71,20 @@ def code_digest() -> str:
     return h.hexdigest()[:12]
 
 
-def cell_key(n_agents: int, snr_db: float, topology: str, n_strangers: int) -> int:
-    """A stable number for a cell's scientific parameters (its seeds' spawn key)."""
-    return zlib.crc32(f"{n_agents}/{snr_db:g}/{topology}/{n_strangers}/{N_LANDMARKS}/{OVERLAP:g}".encode())
+def cell_key(n_agents: int, snr_db: float, topology: str, n_strangers: int, n_landmarks: int = N_LANDMARKS,
+             overlap: float = OVERLAP, layout: str = "strip") -> int:
+    """A stable number for a cell's scientific parameters (its seeds' spawn key; the layout named only
+    when it is not the strip, so that strip cells keep their seeds)."""
+    text = f"{n_agents}/{snr_db:g}/{topology}/{n_strangers}/{n_landmarks}/{overlap:g}"
+    return zlib.crc32((text if layout == "strip" else f"{text}/{layout}").encode())
 
 
-def team_rows(n_agents: int, snr_db: float, topology: str, n_strangers: int, k: int) -> list[dict]:
-    """One team merged pairwise once and assembled by every placement: a row per placement."""
-    seed = np.random.SeedSequence([TEAM_SEED, cell_key(n_agents, snr_db, topology, n_strangers), k])
-    team = mm.simulate.make_group(n_agents, N_LANDMARKS, OVERLAP, snr_db, topology=topology,
-                                  n_strangers=n_strangers, rng=seed)
+def team_rows(n_agents: int, snr_db: float, topology: str, n_strangers: int, k: int, n_landmarks: int = N_LANDMARKS,
+              overlap: float = OVERLAP, layout: str = "strip", root_seed: int = TEAM_SEED) -> list[dict]:
+    """Team k of a cell merged pairwise once and assembled by every placement: a row per placement."""
+    key = cell_key(n_agents, snr_db, topology, n_strangers, n_landmarks, overlap, layout)
+    team = mm.simulate.make_group(n_agents, n_landmarks, overlap, snr_db, layout=layout, topology=topology,
+                                  n_strangers=n_strangers, rng=np.random.SeedSequence([root_seed, key, k]))
     sigmas = np.full(team.n_agents, team.sigma)
     start = time.perf_counter()
     edges = group.pairwise_edges(team.maps, sigmas, [None] * team.n_agents,
@@ -156,15 +160,18 @@ def summary(rows: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(out)
 
 
-def headline(table: pd.DataFrame) -> str:
-    """``summary.md``: one line per cell, the three placements side by side."""
+#: What the committed cells hold (``headline``'s default note).
+NOTE = "100 landmarks per map, neighbours sharing half their disc, `consensus` pairwise merges."
+
+
+def headline(table: pd.DataFrame, note: str = NOTE) -> str:
+    """``summary.md``: one line per cell, the three placements side by side (``note``: what the cells hold)."""
     lines = ["# Teams of agents: merge_many against chaining and a spanning tree", "",
              "Share of teams with every agent placed correctly (joint / tree / chain), wrong placements "
              "(rotation over 1° or RMS registration over σ), those of them outside their own covariance's "
              "99.9 % region, team agents left unplaced, strangers placed, and the fused map's RMSE over "
              "landmarks seen twice or more (joint, in σ) "
-             "with its ratio to the chain's and the tree's (95 % intervals). 100 landmarks per map, "
-             "neighbours sharing half their disc, `consensus` pairwise merges.", "",
+             f"with its ratio to the chain's and the tree's (95 % intervals). {note}", "",
              "| agents | SNR (dB) | topology | strangers | teams | all correct (j / t / c) | wrong (j / t / c) "
              "| beyond own covariance (j / t / c) | unplaced (j) | strangers placed (j) | RMSE joint (σ) "
              "| joint / chain | joint / tree |",
