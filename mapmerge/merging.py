@@ -27,7 +27,10 @@ from ._validation import (check_covariances, check_finite, check_geometry, check
                           check_sigma_range, float_array)
 from .alignment import rotation, wrap_angle
 from .baselines import astroalign as astroalign_baseline
+from .baselines import clipper as clipper_baseline
+from .baselines import cpd as cpd_baseline
 from .baselines import groth as groth_baseline
+from .baselines import teaser as teaser_baseline
 from .matching import TriangleMatch, check_objective, match_triangles, resolve_correspondences, resolve_log_tau
 from .result import MergeBatch, MergeResult, build_batch
 from .triangles import triangulate_batches
@@ -76,6 +79,12 @@ METHODS = {m.name: m for m in (
            baseline=groth_baseline.merge),
     Method("astroalign", "baseline: astroalign.find_transform (optional extra [baselines])", uses_tau=False,
            baseline=astroalign_baseline.merge),
+    Method("cpd", "peer: rigid Coherent Point Drift (pycpd, optional extra [peers])", uses_tau=False,
+           baseline=cpd_baseline.merge),
+    Method("clipper", "peer: CLIPPER consistency graph (built by tools/build_peers.sh)", uses_tau=False,
+           baseline=clipper_baseline.merge),
+    Method("teaser", "peer: TEASER++ with z = 0 (built by tools/build_peers.sh)", uses_tau=False,
+           baseline=teaser_baseline.merge),
 )}
 
 #: Default threshold: reject 1 % of true, order-consistent triangle pairs.

@@ -1,0 +1,62 @@
+"""The outside peers (mapmerge.baselines: cpd, clipper, teaser) on a few fixed pairs; skipped when absent."""
+
+import sys
+
+import numpy as np
+import pytest
+
+import mapmerge as mm
+from mapmerge import metrics
+from mapmerge.baselines import associations
+
+PEERS = [("cpd", "pycpd", 10), ("clipper", "clipperpy", 20), ("teaser", "teaserpp_python", 20)]
+
+
+@pytest.mark.parametrize("method, module, n", PEERS)
+def test_peer_finds_the_transform_and_rejects_unrelated_maps(method, module, n):
+    pytest.importorskip(module)
+    sc = mm.simulate.make_pair(n, 0.75, 35, rng=1)
+    err = metrics.map_errors(sc, mm.merge_maps(sc.p, sc.q, sc.sigma, method=method))
+    assert err["transform_found"] and err["wrong_pairs"] == 0 and err["correct_pairs"] >= n // 2
+    other = mm.simulate.make_pair(n, 0.75, 35, rng=1, unrelated=True)
+    assert not mm.merge_maps(other.p, other.q, other.sigma, method=method).matched
+
+
+@pytest.mark.parametrize("method, module", [("clipper", "clipperpy"), ("teaser", "teaserpp_python")])
+def test_peer_on_gated_associations(method, module):
+    pytest.importorskip(module)
+    # 60 x 60 landmarks is past the all-to-all limit: the signature gating feeds the peer.
+    sc = mm.simulate.make_pair(60, 0.75, 35, rng=4)
+    assert len(sc.p) * len(sc.q) > associations.ALL_TO_ALL_MAX
+    assert metrics.map_errors(sc, mm.merge_maps(sc.p, sc.q, sc.sigma, method=method))["transform_found"]
+
+
+@pytest.mark.parametrize("method, module, hint", [("cpd", "pycpd", "mapmerge[peers]"),
+                                                  ("clipper", "clipperpy", "tools/build_peers.sh"),
+                                                  ("teaser", "teaserpp_python", "tools/build_peers.sh")])
+def test_missing_peer_names_how_to_install_it(monkeypatch, method, module, hint):
+    monkeypatch.setitem(sys.modules, module, None)  # an import of it now fails
+    sc = mm.simulate.make_pair(10, 0.75, 30, rng=0)
+    with pytest.raises(ImportError, match=hint.replace("[", r"\[").replace("]", r"\]")):
+        mm.merge_maps(sc.p, sc.q, sc.sigma, method=method)
+
+
+def test_putative_associations_all_to_all_then_gated():
+    rng = np.random.default_rng(0)
+    P, Q = rng.uniform(0, 10, (5, 2)), rng.uniform(0, 10, (7, 2))
+    A = associations.putative_associations(P, Q)
+    assert len(A) == 35 and len(np.unique(A, axis=0)) == 35
+    big_p, big_q = rng.uniform(0, 10, (80, 2)), rng.uniform(0, 10, (70, 2))
+    G = associations.putative_associations(big_p, big_q)
+    assert G.shape == (80 * associations.GATE_K, 2)
+    assert np.array_equal(np.bincount(G[:, 0]), np.full(80, associations.GATE_K))
+    # A landmark's own copy (the same map moved rigidly) is among its gated candidates.
+    c, s = np.cos(1.0), np.sin(1.0)
+    moved = big_p @ np.array([[c, s], [-s, c]]) + 3.0
+    own = associations.putative_associations(big_p, moved)
+    assert np.all((own[:, 0] == own[:, 1]).reshape(80, -1).any(axis=1))
+
+
+def test_one_to_one_keeps_the_first_pair_of_each_landmark():
+    pairs = np.array([[3, 1], [0, 1], [3, 2], [2, 0], [1, 4]])
+    np.testing.assert_array_equal(associations.one_to_one(pairs), [[1, 4], [2, 0], [3, 1]])
