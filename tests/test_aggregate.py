@@ -58,6 +58,21 @@ def test_tau_rules_split_across_jobs_count_each_trial_once(tmp_path):
     b = pd.read_csv(tmp_path / "one_agg" / "table.csv").sort_values("tau", ignore_index=True)
     pd.testing.assert_frame_equal(a, b)
     assert pd.read_csv(tmp_path / "one_agg" / "auc.csv").n_trials.item() == 60
+    # A second sweep into the same directory adds its cells (one of them already there, with fewer
+    # trials: counted once): the directory's aggregate keeps every cell of both.
+    more = cli(["-m", "scenario=small", "scenario.snr_db=20,40", "matcher.taus=[chi2:0.01]", "mc.n_trials=8",
+                "mc.n_jobs=1", f"hydra.sweep.dir={tmp_path / 's'}"], tmp_path, CI="")
+    assert more.returncode == 0, more.stderr[-2000:]
+    table = pd.read_csv(tmp_path / "s" / "aggregate" / "table.csv")
+    assert table.groupby(["snr_db", "tau"]).n_trials.max().to_dict() == {
+        (20, "-3"): 60, (20, "chi2:0.01"): 60, (20, "chi2:0.05"): 60, (40, "chi2:0.01"): 8}
+    from experiments.aggregate import main
+
+    main([str(tmp_path / "s"), "--out", str(tmp_path / "again")])
+    for name in ("table.csv", "auc.csv", "roc.csv"):
+        assert (tmp_path / "again" / name).read_bytes() == (tmp_path / "s" / "aggregate" / name).read_bytes()
+    # The sweep's overall progress bar (trials still to run: 8 of 16 were cached; cells done).
+    assert "sweep: 100%" in more.stderr and "8/8 [" in more.stderr and "cells 2/2" in more.stderr
     # A run written before the scenario's later columns existed reads at their first-release values.
     shutil.copytree(tmp_path / "one", tmp_path / "older")
     for path in (tmp_path / "older").glob("summary_*.parquet"):  # so old a run has no summaries either
@@ -228,25 +243,6 @@ def test_aggregating_a_directory_without_runs_is_one_line_and_exit_2(tmp_path, c
     assert exit_.value.code == 2
     assert capsys.readouterr().err == f"error: no trials.parquet below {tmp_path / 'empty'}\n"
     assert not (tmp_path / "out").exists()
-
-
-def test_two_sweeps_under_one_name_keep_every_cell_of_both(tmp_path):
-    from experiments.aggregate import main
-
-    common = ["-m", "name=mine", "scenario=small", "matcher.taus=[chi2:0.01]", "mc.n_jobs=1"]
-    first = cli([*common, "scenario.snr_db=20,30", "mc.n_trials=8"], tmp_path, CI="")
-    # The second sweep overlaps the first (the 30 dB cell, 8 of its 12 trials): its aggregate is the union.
-    second = cli([*common, "scenario.snr_db=30,40", "mc.n_trials=12"], tmp_path, CI="true")
-    assert first.returncode == 0 and second.returncode == 0, first.stderr[-2000:] + second.stderr[-2000:]
-    # One overall bar (trials to run, rate, cells done) besides each cell's; none in CI.
-    assert "sweep: 100%" in first.stderr and "16/16 [" in first.stderr and "cells 2/2" in first.stderr
-    assert "trial/s" not in second.stderr
-    sweep = tmp_path / "outputs" / "sweeps" / "mine"
-    table = pd.read_csv(sweep / "aggregate" / "table.csv")
-    assert dict(zip(table.snr_db, table.n_trials)) == {20: 8, 30: 12, 40: 12}
-    main([str(sweep), "--out", str(tmp_path / "again")])
-    for name in ("table.csv", "auc.csv", "roc.csv"):
-        assert (tmp_path / "again" / name).read_bytes() == (sweep / "aggregate" / name).read_bytes(), name
 
 
 def test_sweeps_without_a_name_get_directories_of_their_own():

@@ -39,20 +39,20 @@ def test_resume_after_deleting_chunks_is_identical(tmp_path):
 
 def test_more_trials_compute_only_the_new_ones_and_equal_a_fresh_run(tmp_path, caplog):
     cache = tmp_path / "cache"
-    run(small(n_trials=12), tmp_path / "first", cache)
+    run(small(n_trials=6, n_jobs=1), tmp_path / "first", cache)
     with caplog.at_level("INFO", logger="experiments.run"):
-        more = run(small(n_trials=30), tmp_path / "more", cache).parent
-    assert "30 trials, 12 cached, 18 to run in " in caplog.text
-    fresh = run(small(n_trials=30), tmp_path / "fresh", tmp_path / "other_cache").parent
+        more = run(small(n_trials=15, n_jobs=1), tmp_path / "more", cache).parent
+    assert "15 trials, 6 cached, 9 to run in " in caplog.text
+    fresh = run(small(n_trials=15, n_jobs=1), tmp_path / "fresh", tmp_path / "other_cache").parent
     for name in ("trials.parquet", "pairs.parquet"):
         assert digest(more / name) == digest(fresh / name), name
     # Fewer trials than cached: read from the cache, nothing run, the same rows as a fresh run of as many.
     caplog.clear()
     with caplog.at_level("INFO", logger="experiments.run"):
-        fewer = run(small(n_trials=20), tmp_path / "fewer", cache).parent
-    assert "20 trials, 20 cached, 0 to run in 0 chunks" in caplog.text
+        fewer = run(small(n_trials=10, n_jobs=1), tmp_path / "fewer", cache).parent
+    assert "10 trials, 10 cached, 0 to run in 0 chunks" in caplog.text
     pd.testing.assert_frame_equal(pd.read_parquet(fewer / "pairs.parquet"),
-                                  pd.read_parquet(fresh / "pairs.parquet").query("trial < 20").reset_index(drop=True))
+                                  pd.read_parquet(fresh / "pairs.parquet").query("trial < 10").reset_index(drop=True))
 
 
 def test_progress_bars_are_quiet_in_ci_and_with_hydra_verbose_false(monkeypatch):
