@@ -210,6 +210,7 @@ def figure(table: pd.DataFrame, path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import NullFormatter
 
     grid = table[(table.topology == "ring") & (table.n_strangers == 0)]
     snrs = sorted(grid.snr_db.unique())
@@ -224,7 +225,8 @@ def figure(table: pd.DataFrame, path: Path) -> None:
         axes[0, col].set_title(f"ring, {snr:g} dB")
         axes[1, col].set_xlabel("agents in the team")
         axes[1, col].set_xscale("log")
-        axes[1, col].set_xticks([3, 5, 10, 20], ["3", "5", "10", "20"])
+        axes[1, col].set_xticks(list(AGENTS), [str(n) for n in AGENTS])
+        axes[1, col].xaxis.set_minor_formatter(NullFormatter())
     axes[0, 0].set_ylabel("teams with every agent\nplaced correctly")
     axes[1, 0].set_ylabel("fused-map RMSE, shared\nlandmarks (σ)")
     axes[0, -1].legend(title="placement", loc="center left", bbox_to_anchor=(1.02, 0.5))
