@@ -12,8 +12,9 @@ optimisation) and ``chain`` (sequential chaining). Reported per cell and
 placement (``table.md``): the share of teams with every agent placed
 correctly (rotation within 1°, RMS registration within σ) and its 95 %
 Wilson interval, wrong placements, placements whose error lies outside
-their own covariance's 99.9 % region (``beyond_cov``: wrong and not
-knowing it, unlike a far map placed within its honest uncertainty),
+their own covariance's 99.9 % region (``beyond_cov``, right or wrong:
+off by more than the result says, unlike a far map placed within its
+honest uncertainty),
 agents left unplaced, strangers placed,
 track purity and completeness, the fused map's RMSE over the landmarks
 seen by two or more maps (``shared_rmse``, in σ) and its ratio to the
@@ -168,8 +169,8 @@ def headline(table: pd.DataFrame, note: str = NOTE) -> str:
     """``summary.md``: one line per cell, the three placements side by side (``note``: what the cells hold)."""
     lines = ["# Teams of agents: merge_many against chaining and a spanning tree", "",
              "Share of teams with every agent placed correctly (joint / tree / chain), wrong placements "
-             "(rotation over 1° or RMS registration over σ), those of them outside their own covariance's "
-             "99.9 % region, team agents left unplaced, strangers placed, and the fused map's RMSE over "
+             "(rotation over 1° or RMS registration over σ), placements (right or wrong) outside their own "
+             "covariance's 99.9 % region, team agents left unplaced, strangers placed, and the fused map's RMSE over "
              "landmarks seen twice or more (joint, in σ) "
              f"with its ratio to the chain's and the tree's (95 % intervals). {note}", "",
              "| agents | SNR (dB) | topology | strangers | teams | all correct (j / t / c) | wrong (j / t / c) "
