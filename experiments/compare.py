@@ -61,9 +61,9 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from .aggregate import markdown, runs_since, save_table, with_timing  # noqa: E402
-from .figures import STYLE, _save  # noqa: E402
+from .figures import STYLE, save_figure  # noqa: E402
 from .intervals import ratio_interval, wilson  # noqa: E402
-from .paper import _call  # noqa: E402
+from .paper import run_module  # noqa: E402
 
 #: The sweeps of the experiment: each writes ``<out>/<preset>/table.csv``.
 PRESETS = ("compare", "compare_consensus", "compare_search", "compare_astroalign", "compare_association")
@@ -148,7 +148,7 @@ def success_figure(comp: pd.DataFrame, out: Path, limit: pd.DataFrame | None = N
                 named.setdefault(lab, h)
         fig.legend(named.values(), named.keys(), loc="lower center", ncol=3, frameon=False, fontsize=6)
         fig.tight_layout(rect=(0, 0.1, 1, 1))
-        return _save(fig, out, "success")
+        return save_figure(fig, out, "success")
 
 
 def write_tables(out: Path) -> list[Path]:
@@ -333,7 +333,7 @@ def main(argv=None) -> None:
         for preset in presets:
             where = [f"hydra.sweep.dir={ASSOCIATION_SWEEP}"] if preset == ASSOCIATION else []
             started = time.time()
-            _call(["experiments.run", "-m", f"experiment={preset}", f"aggregate_dir={out / preset}",
+            run_module(["experiments.run", "-m", f"experiment={preset}", f"aggregate_dir={out / preset}",
                    "mc.progress=false", *args.overrides, *where])
             if preset == ASSOCIATION:  # the runs its aggregate holds, as the aggregation picked them
                 found_pairs(runs_since(ASSOCIATION_SWEEP, started)).to_csv(out / preset / "found_pairs.csv",

@@ -44,7 +44,9 @@ STATUS_COLOURS = {"tp": "tab:green", "md": "tab:blue", "fp": "tab:red"}
 FIG3_PANELS = [(10, 0.75), (10, 0.5), (20, 0.75), (20, 0.5)]
 
 
-def _save(fig, out: Path, name: str) -> list[Path]:
+def save_figure(fig, out: Path, name: str) -> list[Path]:
+    """Write ``fig`` as ``out/name.png`` and ``.pdf`` with no timestamps or software versions in their
+    metadata (so that a rerun gives the same bytes), and close it."""
     paths = [out / f"{name}.png", out / f"{name}.pdf"]
     fig.savefig(paths[0], metadata={"Software": None})
     fig.savefig(paths[1], metadata={"CreationDate": None, "Creator": None, "Producer": None})
@@ -126,7 +128,7 @@ def fig3(roc: pd.DataFrame, auc: pd.DataFrame, out: Path, name: str = "fig3",
         fig.text(0.5, 0.005, f"circles: P_FA, P_D achieved by the calibrated rule τ = {CALIBRATED_RULE} "
                  "(χ²₃ tail probability of true pairs)", ha="center", fontsize=6.5)
     fig.tight_layout(rect=(0, 0.02, 1, 1))
-    return _save(fig, out, name)
+    return save_figure(fig, out, name)
 
 
 def _triangles(ax, tri: pd.DataFrame):
@@ -159,7 +161,7 @@ def fig1(triangles: pd.DataFrame, out: Path, name: str = "fig1") -> list[Path]:
     fig.suptitle(f"Matching, {cell.n_landmarks.iloc[0]} landmarks per map, "
                  f"{cell.overlap.iloc[0]:.0%} common, τ rule: {cell.tau.iloc[0]}", fontsize=8)
     fig.tight_layout()
-    return _save(fig, out, name)
+    return save_figure(fig, out, name)
 
 
 def fig2(landmarks: pd.DataFrame, out: Path, name: str = "fig2") -> list[Path]:
@@ -185,7 +187,7 @@ def fig2(landmarks: pd.DataFrame, out: Path, name: str = "fig2") -> list[Path]:
         ax.set_aspect("equal")
         ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=3, frameon=False)
     fig.tight_layout()
-    return _save(fig, out, name)
+    return save_figure(fig, out, name)
 
 
 def draw_all(results: Path) -> list[Path]:

@@ -26,7 +26,9 @@ FULL_FIG3_TRIALS = 10000
 QUICK_FIG3_TRIALS = 2000
 
 
-def _call(args: list[str]) -> None:
+def run_module(args: list[str]) -> None:
+    """Run ``python -m <args>`` in a fresh process (each driver step, as a user would type it), echoing
+    the command; a failure raises ``CalledProcessError``."""
     cmd = [sys.executable, "-m", *args]
     print("+", shlex.join(cmd), flush=True)
     subprocess.run(cmd, check=True)
@@ -43,7 +45,7 @@ def main(argv=None) -> None:
     out = Path(args.out or ("outputs/paper-quick" if args.quick else "results/paper"))
     trials = QUICK_FIG3_TRIALS if args.quick else FULL_FIG3_TRIALS
     for fig, extra in (("fig3", [f"mc.n_trials={trials}"]), ("fig1", []), ("fig2", [])):
-        _call(["experiments.run", "-m", f"experiment={fig}", *extra,
+        run_module(["experiments.run", "-m", f"experiment={fig}", *extra,
                f"aggregate_dir={out / fig}", "mc.progress=false", *args.overrides])
     print(fig3_summary(out / "fig3"))
     for path in draw_all(out):

@@ -22,7 +22,7 @@ from pathlib import Path
 import pandas as pd
 
 from .aggregate import save_table
-from .paper import _call
+from .paper import run_module
 
 
 def summary(table: pd.DataFrame) -> pd.DataFrame:
@@ -50,7 +50,7 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     out = Path(args.out)
     if not args.tables:
-        _call(["experiments.run", "-m", "experiment=realistic", f"aggregate_dir={out}", "mc.progress=false",
+        run_module(["experiments.run", "-m", "experiment=realistic", f"aggregate_dir={out}", "mc.progress=false",
                *args.overrides])
     for path in save_table(summary(pd.read_csv(out / "table.csv")), out / "summary"):
         print(path)

@@ -41,8 +41,8 @@ from mapmerge.merging import merge_maps, residual_match  # noqa: E402
 from mapmerge.metrics import map_errors, oracle_association, transform_oracle_association  # noqa: E402
 
 from .aggregate import find_runs, save_table  # noqa: E402
-from .figures import STYLE, _save  # noqa: E402
-from .paper import _call  # noqa: E402
+from .figures import STYLE, save_figure  # noqa: E402
+from .paper import run_module  # noqa: E402
 
 SWEEP = Path("outputs/sweeps/victoria_park")
 #: A tree the whole log sighted at most this many times has a reference
@@ -197,7 +197,7 @@ def figure(examples: pd.DataFrame, out: Path, cut: int = DEFAULT_CUT, method: st
         for a in axes[-1]:
             a.set_xlabel("x (m)")
         fig.suptitle(f"Victoria Park split at pose {cut}: two agents' maps and their merge", fontsize=8)
-        return _save(fig, out, "victoria_park")
+        return save_figure(fig, out, "victoria_park")
 
 
 def bent_figure(out: Path, cut: int = 5500) -> list[Path]:
@@ -229,7 +229,7 @@ def bent_figure(out: Path, cut: int = 5500) -> list[Path]:
         ax.legend(fontsize=5.5, frameon=False, loc="upper right", bbox_to_anchor=(1.0, 0.74))
         ax.set_title(f"Victoria Park split at pose {cut}, SLAM maps: q's map is bent,\nthe merge aligns its "
                      "larger part; the trees it left unpaired hold a second match", fontsize=7)
-        return _save(fig, out, "victoria_park_bent")
+        return save_figure(fig, out, "victoria_park_bent")
 
 
 #: The preset's cuts, for the tables on the SLAM maps beyond the sweep's.
@@ -342,7 +342,7 @@ def main(argv=None) -> None:
         sources = ["reference"] + (["slam"] if importlib.util.find_spec("gtsam") else [])
         methods = ["paper", "cyclic", "consensus", "groth"]
         methods += ["astroalign"] if importlib.util.find_spec("astroalign") else []
-        _call(["experiments.run", "-m", "experiment=victoria_park", "mc.progress=false",
+        run_module(["experiments.run", "-m", "experiment=victoria_park", "mc.progress=false",
                f"scenario.source={','.join(sources)}", f"matcher.method={','.join(methods)}",
                f"aggregate_dir={SWEEP / 'aggregate'}", *args.overrides])
     for path in write(SWEEP, Path(args.out)):
