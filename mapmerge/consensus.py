@@ -81,28 +81,15 @@ REFINE = 32
 #: Log-likelihood margin under which two landmark assignments are
 #: indistinguishable (a likelihood ratio below 1,000): triangles on such
 #: contested landmarks are not declared, though the landmarks are still
-#: fused. At unit density and 30 dB about 4 % of landmarks have another within 5σ; at a ratio of
-#: 100, one wrong pick per 1,000 trials of 75 common landmarks still made a
-#: false triangle (a q-only landmark 3.5σ from a common one, noise put it
-#: nearer: the runner-up assignment was 160 times less likely).
+#: fused. Why 1,000 and not 100: docs/tuning.md.
 AMBIGUITY = np.log(1000.0)
 #: Prior probability π that a q landmark mapped among p's is shared, in the
 #: association's unshared hypothesis (and the EM step's mixture): starts here,
 #: then is re-estimated from the association (the paired share of q's landmarks
 #: inside p's hull over the share the association can pair at that π, see
 #: ``associate``) within ``SHARED_RANGE``, ``PRIOR_ROUNDS`` associations in all.
-#: Without the division by that recall, the estimate settled at a
-#: self-consistent low value at 10 dB (few pairs, so a low π, so few pairs):
-#: started at 0.5 it paired 0.65-0.77x the oracle association's correct pairs,
-#: started at 0.8 0.94-0.98x. With it, on tuning seeds 400000-400149 (strip and
-#: interleaved, 7.5-15 dB; pairs whose transform was found) it pairs
-#: 0.98-1.00x the oracle's correct pairs with 1.00-1.06x its wrong ones
-#: (strip 10 dB 0.980x / 1.028x, 111 of 150 transforms found), and the start
-#: barely matters (0.5: 0.981x / 1.029x, 111 found; interleaved 10 dB 0.994x
-#: against 0.989x, 103 found either way). On seeds 420000-420099 (interleaved
-#: with clutter and covariances, 20 dB) it makes 1.006x the oracle's wrong
-#: pairs (0.9 as the start of the uncorrected estimate: 1.13x). No unrelated
-#: pair of 300 (seeds 430000-430149, 10 dB, both layouts) merged.
+#: The division by that recall keeps the estimate from settling at a
+#: self-consistent low value at low SNR (tuning seeds and numbers: docs/tuning.md).
 SHARED_PRIOR = 0.8
 SHARED_RANGE = (0.1, 0.99)
 #: Associations in all; the last is the one returned (see ``associate``).

@@ -238,9 +238,7 @@ def local_numbering(pairs: np.ndarray, n_p: int, n_q: int) -> tuple[np.ndarray, 
     Triangles come in Delaunay's order, scattered over the map, so the candidate pairs of one p triangle
     point at q nodes far apart in memory. Numbered along a reverse Cuthill-McKee order of the candidate
     graph (p and q triangles each in their order of it), OR-Tools' min-cost flow solves the same LP
-    faster: ``assign_sparse`` on the graphs of one merge of 10⁵ landmarks per map, three alternating runs,
-    8.5-8.8 -> 5.3-5.6 s (cyclic), 6.2-7.1 -> 5.2-5.4 s (paper). One order over p and q triangles together
-    gained less (6.7 s on cyclic's). Exactly tied optima may resolve differently.
+    faster (measurements: docs/tuning.md). Exactly tied optima may resolve differently.
     """
     n = n_p + n_q
     ends = np.concatenate([pairs[:, 0], n_p + pairs[:, 1]])
