@@ -37,7 +37,6 @@ digest of the library's code, so an interrupted run resumes.
 from __future__ import annotations
 
 import argparse
-import hashlib
 import time
 import zlib
 from pathlib import Path
@@ -50,7 +49,8 @@ import mapmerge as mm
 from mapmerge import group
 
 from .aggregate import save_table
-from .compare import ratio_interval, wilson
+from .intervals import ratio_interval, wilson
+from .trials import code_digest
 
 TEAM_SEED = 900000
 N_LANDMARKS, OVERLAP = 100, 0.5
@@ -62,14 +62,6 @@ GRID = [cell for cell in ([(n, snr, top, 0) for top in ("ring", "random") for sn
                           + [(n, 20.0, top, 0) for top in ("chain", "star") for n in AGENTS])
         if cell not in HEADLINE]
 SPEED_AGENTS, SPEED_TEAMS = 20, 3
-
-
-def code_digest() -> str:
-    """Digest of the library's source: cached rows of other code are recomputed."""
-    h = hashlib.sha256()
-    for path in sorted(Path(mm.__file__).parent.rglob("*.py")):
-        h.update(path.read_bytes())
-    return h.hexdigest()[:12]
 
 
 def cell_key(n_agents: int, snr_db: float, topology: str, n_strangers: int, n_landmarks: int = N_LANDMARKS,
@@ -116,7 +108,7 @@ def run_cells(cells, n_teams: int, out: Path, n_jobs: int = 2) -> pd.DataFrame:
     """Every cell's ``n_teams`` teams' rows, computed or read from ``out``/rows (one CSV per cell, written whole)."""
     rows_dir = out / "rows"
     rows_dir.mkdir(parents=True, exist_ok=True)
-    digest = code_digest()
+    digest = code_digest()[:12]
     frames = []
     teams = n_teams
     for n_agents, snr, topology, strangers in cells:

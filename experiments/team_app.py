@@ -35,7 +35,8 @@ from mapmerge.simulate import ScenarioError
 
 from .aggregate import save_table
 from .schema import CONF_DIR
-from .team import code_digest, headline, summary, team_rows
+from .team import headline, summary, team_rows
+from .trials import code_digest
 
 log = logging.getLogger(__name__)
 

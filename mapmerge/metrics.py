@@ -516,7 +516,8 @@ def group_errors(team, group) -> dict:
         against the truth in the reference frame.
     """
     stranger = np.asarray(team.stranger, dtype=bool)
-    status, rot_err, registration, nees = _placements(team, group, stranger)
+    truth = _reference_truth(team, int(group.reference))
+    status, rot_err, registration, nees = _placements(team, group, stranger, truth)
     team_map = ~stranger
     return {
         "placed_correct": int(np.sum((status == "correct") & team_map)),
@@ -526,7 +527,7 @@ def group_errors(team, group) -> dict:
         "all_correct": bool(np.all(status[team_map] == "correct") and not np.any(status == "wrong")),
         "status": list(status), "rot_err_deg": rot_err, "registration": registration, "nees": nees,
         "beyond_cov": int(np.sum(nees > chdtri(3, 1e-3))),
-        **_track_scores(team, group, team_map),
+        **_track_scores(team, group, team_map, truth[2]),
     }
 
 
@@ -539,17 +540,18 @@ def _reference_truth(team, ref: int):
     return theta, t, lambda x: rotate(team.theta[ref], x) + team.t[ref]
 
 
-def _placements(team, group, stranger):
+def _placements(team, group, stranger, reference_truth):
     """Per map: "correct" / "wrong" / "unplaced", rotation error (deg), RMS registration and NEES."""
     N, ref = len(team.maps), int(group.reference)
     sigma = np.broadcast_to(np.asarray(team.sigma, dtype=float), (N,))
-    true_theta, true_t, world_to_ref = _reference_truth(team, ref)
+    true_theta, true_t, world_to_ref = reference_truth
+    truth = np.asarray(team.truth, dtype=float)
     rot_err, registration, nees = np.full(N, np.nan), np.full(N, np.nan), np.full(N, np.nan)
     status = np.where(group.placed, "wrong", "unplaced").astype(object)
     for i in np.flatnonzero(group.placed):
         if stranger[i] or stranger[ref]:
             continue
-        x = world_to_ref(np.asarray(team.truth, dtype=float)[team.ids[i]])
+        x = world_to_ref(truth[team.ids[i]])
         x = x[~np.isnan(x[:, 0])]
         d = rotate(group.theta[i], x) + group.t[i] - rotate(true_theta[i], x) - true_t[i]
         rot_err[i] = np.degrees(np.abs(wrap_angle(group.theta[i] - true_theta[i])))
@@ -564,7 +566,7 @@ def _placements(team, group, stranger):
     return status, rot_err, registration, nees
 
 
-def _track_scores(team, group, team_map) -> dict:
+def _track_scores(team, group, team_map, world_to_ref) -> dict:
     """Track purity, completeness, duplicates and the fused map's RMSE (``group_errors``)."""
     tracks = group.tracks
     present = tracks >= 0
@@ -586,7 +588,7 @@ def _track_scores(team, group, team_map) -> dict:
     one_track = np.isin(shared, in_tracks[per_id == 1])
     truth = np.asarray(team.truth, dtype=float)
     scored = pure & team_tracks & ~np.isnan(truth[first, 0])
-    err2 = np.sum((group.merged - _reference_truth(team, int(group.reference))[2](truth[first])) ** 2, axis=1)
+    err2 = np.sum((group.merged - world_to_ref(truth[first])) ** 2, axis=1)
     with np.errstate(invalid="ignore"):
         return {
             "track_purity": float(np.mean(pure[multi])) if multi.any() else np.nan,

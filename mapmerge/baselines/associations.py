@@ -21,6 +21,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..result import MIN_MATCHED_LANDMARKS, MergeBatch, build_from_parts
+
 #: Largest n_p·n_q for all-to-all associations (2,500: 50 x 50 landmarks; 50 MB of CLIPPER affinity).
 ALL_TO_ALL_MAX = 2500
 #: Candidates of q kept per landmark of p past ``ALL_TO_ALL_MAX``.
@@ -36,9 +38,18 @@ def rotate_about_centroid(X: np.ndarray, angle: float) -> np.ndarray:
     return (X - mean) @ np.array([[c, s], [-s, c]]) + mean
 
 
-def accept_pairs(pairs: np.ndarray, accepted: bool) -> np.ndarray:
-    """``pairs`` if the method's acceptance test passed, else no pair (an honest "no match")."""
-    return pairs if accepted else np.empty((0, 2), dtype=np.intp)
+def merge_by_inliers(method: str, inliers, bounds: dict[int, int], P, Q, sigma, tri_p, tri_q) -> MergeBatch:
+    """A peer's merge of B map pairs: ``inliers(P_b, Q_b, sigma_b)`` gives its one-to-one inlier set,
+    accepted when it holds at least ``min_inliers(bounds, ...)`` (and ``MIN_MATCHED_LANDMARKS``) pairs,
+    else no pair (an honest "no match"); the transform is ``build_batch``'s closed-form fit on it."""
+    empty = (np.empty((0, 2), dtype=np.intp), np.empty(0), np.empty(0, bool))
+    need = max(MIN_MATCHED_LANDMARKS, min_inliers(bounds, P.shape[1], Q.shape[1]))
+    parts = []
+    for b in range(len(P)):
+        pairs = inliers(P[b], Q[b], float(sigma[b]))
+        parts.append((*empty, pairs if len(pairs) >= need else np.empty((0, 2), dtype=np.intp), 0))
+    return build_from_parts(method=method, P=P, Q=Q, sigma=sigma, log_tau=np.full(len(P), np.nan),
+                            tri_p=tri_p, tri_q=tri_q, parts=parts)
 
 
 def putative_associations(P: np.ndarray, Q: np.ndarray) -> np.ndarray:

@@ -18,9 +18,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..result import MIN_MATCHED_LANDMARKS, MergeBatch, build_from_parts
+from ..result import MergeBatch
 from ..triangles import TriangleBatch
-from .associations import accept_pairs, min_inliers, one_to_one, putative_associations
+from .associations import merge_by_inliers, one_to_one, putative_associations
 
 #: Spread of CLIPPER's consistency kernel, in units of σ (the distance difference's standard deviation).
 CLIPPER_SIGMA_SIGMAS = 2.0
@@ -57,11 +57,4 @@ def clipper_pairs(P: np.ndarray, Q: np.ndarray, sigma: float) -> np.ndarray:
 
 def merge(P, Q, sigma, tri_p: TriangleBatch, tri_q: TriangleBatch, rng=None) -> MergeBatch:
     """CLIPPER on B map pairs (``rng`` unused: its initial guess is deterministic)."""
-    empty = (np.empty((0, 2), dtype=np.intp), np.empty(0), np.empty(0, bool))
-    parts = []
-    for b in range(len(P)):
-        pairs = clipper_pairs(P[b], Q[b], float(sigma[b]))
-        need = max(MIN_MATCHED_LANDMARKS, min_inliers(CLIPPER_MIN_INLIERS, P.shape[1], Q.shape[1]))
-        parts.append((*empty, accept_pairs(pairs, len(pairs) >= need), 0))
-    return build_from_parts(method="clipper", P=P, Q=Q, sigma=sigma, log_tau=np.full(len(P), np.nan),
-                            tri_p=tri_p, tri_q=tri_q, parts=parts)
+    return merge_by_inliers("clipper", clipper_pairs, CLIPPER_MIN_INLIERS, P, Q, sigma, tri_p, tri_q)

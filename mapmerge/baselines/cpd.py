@@ -28,9 +28,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..result import MIN_MATCHED_LANDMARKS, MergeBatch, build_from_parts
+from ..result import MergeBatch
 from ..triangles import TriangleBatch
-from .associations import accept_pairs, min_inliers, rotate_about_centroid
+from .associations import merge_by_inliers, rotate_about_centroid
 
 #: Starting rotations of map q, evenly spaced over the circle (EM is local).
 CPD_STARTS = 12
@@ -115,11 +115,4 @@ def cpd_pairs(P: np.ndarray, Q: np.ndarray, sigma: float) -> np.ndarray:
 
 def merge(P, Q, sigma, tri_p: TriangleBatch, tri_q: TriangleBatch, rng=None) -> MergeBatch:
     """CPD on B map pairs (``rng`` unused: the starts are fixed and EM is deterministic)."""
-    empty = (np.empty((0, 2), dtype=np.intp), np.empty(0), np.empty(0, bool))
-    parts = []
-    for b in range(len(P)):
-        pairs = cpd_pairs(P[b], Q[b], float(sigma[b]))
-        need = max(MIN_MATCHED_LANDMARKS, min_inliers(CPD_MIN_INLIERS, P.shape[1], Q.shape[1]))
-        parts.append((*empty, accept_pairs(pairs, len(pairs) >= need), 0))
-    return build_from_parts(method="cpd", P=P, Q=Q, sigma=sigma, log_tau=np.full(len(P), np.nan),
-                            tri_p=tri_p, tri_q=tri_q, parts=parts)
+    return merge_by_inliers("cpd", cpd_pairs, CPD_MIN_INLIERS, P, Q, sigma, tri_p, tri_q)

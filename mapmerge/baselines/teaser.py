@@ -20,9 +20,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..result import MIN_MATCHED_LANDMARKS, MergeBatch, build_from_parts
+from ..result import MergeBatch
 from ..triangles import TriangleBatch
-from .associations import accept_pairs, min_inliers, one_to_one, putative_associations
+from .associations import merge_by_inliers, one_to_one, putative_associations
 
 #: TEASER++'s noise bound β in units of σ (three standard deviations of a residual coordinate, √2 σ each).
 TEASER_NOISE_SIGMAS = 3 * np.sqrt(2)
@@ -71,11 +71,4 @@ def teaser_pairs(P: np.ndarray, Q: np.ndarray, sigma: float) -> np.ndarray:
 
 def merge(P, Q, sigma, tri_p: TriangleBatch, tri_q: TriangleBatch, rng=None) -> MergeBatch:
     """TEASER++ on B map pairs (``rng`` unused: the method is deterministic)."""
-    empty = (np.empty((0, 2), dtype=np.intp), np.empty(0), np.empty(0, bool))
-    parts = []
-    for b in range(len(P)):
-        pairs = teaser_pairs(P[b], Q[b], float(sigma[b]))
-        need = max(MIN_MATCHED_LANDMARKS, min_inliers(TEASER_MIN_INLIERS, P.shape[1], Q.shape[1]))
-        parts.append((*empty, accept_pairs(pairs, len(pairs) >= need), 0))
-    return build_from_parts(method="teaser", P=P, Q=Q, sigma=sigma, log_tau=np.full(len(P), np.nan),
-                            tri_p=tri_p, tri_q=tri_q, parts=parts)
+    return merge_by_inliers("teaser", teaser_pairs, TEASER_MIN_INLIERS, P, Q, sigma, tri_p, tri_q)
