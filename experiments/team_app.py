@@ -55,7 +55,7 @@ def validate(cfg: DictConfig) -> dict:
         raise ValueError(f"n_jobs={n_jobs!r}: must be a positive integer or -1")
     unknown = set(cfg.team) - set(TEAM_KEYS)
     if unknown:
-        raise ValueError(f"team.{sorted(unknown)[0]}: unknown key; the team keys are {list(TEAM_KEYS)}")
+        raise ValueError(f"team.{min(unknown)}: unknown key; the team keys are {list(TEAM_KEYS)}")
     cell = {key: cfg.team[key] for key in TEAM_KEYS}
     try:
         # make_group checks every argument before it draws anything but the geometry of a random topology.
