@@ -67,7 +67,7 @@ import pandas as pd
 from joblib import Parallel, delayed
 
 import mapmerge as mm
-from mapmerge.consensus import SHARED_RANGE
+from mapmerge.association import SHARED_RANGE
 
 from .aggregate import ratio, save_table
 from .trials import arithmetic_digest, code_digest, library_versions

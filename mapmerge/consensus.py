@@ -1,4 +1,4 @@
-"""Consensus verification and landmark association (beyond the paper).
+"""Consensus verification: which triangle matches agree on one rigid motion (beyond the paper).
 
 True triangle matches all share one rigid motion (θ, t); chance congruences
 between unrelated triangles do not. ``consensus_merge``:
@@ -16,8 +16,7 @@ between unrelated triangles do not. ``consensus_merge``:
    ``MIN_CONSENSUS`` triangle pairs, otherwise "no match"; on large maps
    grown ring by ring from the hypothesis), refits with the n-point closed
    form dropping outliers, then associates *every* landmark one-to-one under
-   the fitted transform by posterior log-odds against "unshared"
-   (``posterior_association``: full covariances, q's landmark density), and
+   the fitted transform (``mapmerge.association``), and
    refits on all associations (``ASSOCIATION_ROUNDS`` times), moves the
    transform to the maximum of the mixture likelihood of
    ``mapmerge.exhaustive`` (EM, which wrong pairs bias far less than a fit
@@ -25,9 +24,8 @@ between unrelated triangles do not. ``consensus_merge``:
    only if chance would rarely produce one as good (``match_nfa``, an a
    contrario test);
 4. declares every triangle pair whose three landmarks are associated and
-   not contested (two landmarks closer than the noise can swap, and no
-   data can tell which way), and fuses every association, so common
-   landmarks appear once in the combined map.
+   not contested (``association.declared_triangles``), and fuses every
+   association, so common landmarks appear once in the combined map.
 
 When the triangles give no significant match, ``consensus_merge`` runs its
 ``fallback`` (the global search of ``mapmerge.search``).
@@ -38,18 +36,16 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
-from scipy.spatial import ConvexHull, cKDTree
+from scipy.spatial import ConvexHull
 from scipy.special import chdtri, gammaln
 
 from .alignment import (
     align_pairs, fit_transforms, mapped_covariance, paired_transforms, prediction_var, prediction_vars,
     reject_outliers, rotate, rotation, transform_covariances, wrap_angle,
 )
+from .association import SHARED_PRIOR, associate, declared_triangles, own_covariances
 from .exhaustive import bump_height, em_refine, inside_hull, pair_noise
-from .matching import (
-    TriangleMatch, candidate_components, component_blocks, correspondences, resolve_correspondences,
-)
+from .matching import TriangleMatch, correspondences, resolve_correspondences
 from .result import MergeBatch, build_from_parts
 
 #: Tail probability of every χ² gate (a true pair / landmark is rejected
@@ -78,22 +74,6 @@ MATCH_NFA = 1e-6
 GATE_6 = float(chdtri(6, GATE_P))
 #: Hypotheses (most inliers first) refitted on their inliers and recounted.
 REFINE = 32
-#: Log-likelihood margin under which two landmark assignments are
-#: indistinguishable (a likelihood ratio below 1,000): triangles on such
-#: contested landmarks are not declared, though the landmarks are still
-#: fused. Why 1,000 and not 100: docs/tuning.md.
-AMBIGUITY = np.log(1000.0)
-#: Prior probability π that a q landmark mapped among p's is shared, in the
-#: association's unshared hypothesis (and the EM step's mixture): starts here,
-#: then is re-estimated from the association (the paired share of q's landmarks
-#: inside p's hull over the share the association can pair at that π, see
-#: ``associate``) within ``SHARED_RANGE``, ``PRIOR_ROUNDS`` associations in all.
-#: The division by that recall keeps the estimate from settling at a
-#: self-consistent low value at low SNR (tuning seeds and numbers: docs/tuning.md).
-SHARED_PRIOR = 0.8
-SHARED_RANGE = (0.1, 0.99)
-#: Associations in all; the last is the one returned (see ``associate``).
-PRIOR_ROUNDS = 3
 #: Refit-and-associate rounds after the consensus fit, before the EM step (with EM
 #: after it, a second round changed no found / missed outcome on the 600 tuning
 #: pairs, seeds 400000-400299 at 12.5 and 15 dB).
@@ -245,184 +225,6 @@ def _hough_pool(cp, cq, scores, sigma):
     idx = idx[np.all(np.abs(cell - best) <= 1, axis=1)]
     return idx[np.argsort(-scores[idx], kind="stable")][:MAX_POOL]
 
-
-def _own_covariances(cov, n: int, sigma: float) -> np.ndarray:
-    """The landmarks' covariances, σ² I when none are given."""
-    return np.broadcast_to(sigma**2 * np.eye(2), (n, 2, 2)) if cov is None else cov
-
-
-def pair_log_odds(P, x, cov_p, cov_x, log_prior: float):
-    """Every pair that can score > 0 at ``log_prior`` (or any smaller prior), and its score without the prior.
-
-    A pair scores > 0 only if d² < 2 (log_prior - log(2π √det C)), and
-    det C >= min det Σp + min det Σx, the largest eigenvalue of C at most the
-    sum of the largest ones: that bounds the search radius.
-
-    Returns
-    -------
-    i, j : (C,) int ndarray
-        Candidate pairs (p index, index into x).
-    log_odds : (C,) ndarray
-        ``log N(P_i - x_j; 0, cov_p[i] + cov_x[j])``.
-    """
-    none = np.empty(0, dtype=np.intp)
-    det_min = np.linalg.det(cov_p).min() + np.linalg.det(cov_x).min()
-    largest = np.linalg.eigvalsh(cov_p)[:, 1].max() + np.linalg.eigvalsh(cov_x)[:, 1].max()
-    d2_max = 2 * (log_prior - np.log(2 * np.pi * np.sqrt(det_min)))
-    if d2_max <= 0:
-        return none, none, np.empty(0)
-    cand = cKDTree(P).sparse_distance_matrix(cKDTree(x), np.sqrt(d2_max * largest), output_type="ndarray")
-    i, j = cand["i"], cand["j"]
-    C = cov_p[i] + cov_x[j]
-    e = P[i] - x[j]
-    d2 = np.einsum("ki,kij,kj->k", e, np.linalg.inv(C), e)
-    return i, j, -0.5 * d2 - np.log(2 * np.pi * np.sqrt(np.linalg.det(C)))
-
-
-def posterior_association(P, x, cov_p, cov_x, log_prior: float, with_margin: bool = True, candidates=None):
-    """The maximum-posterior one-to-one association of P and mapped q landmarks x.
-
-    Pair (i, j) scores its log-odds against "both unshared":
-    ``s_ij = log N(P_i - x_j; 0, cov_p[i] + cov_x[j]) + log_prior`` with
-    ``log_prior = log(π / (1 - π)) - log λ_q`` (π the prior that a landmark
-    is shared, λ_q the density of q landmarks: an unshared one is anywhere).
-    Leaving a landmark unpaired scores 0, so a pair is made only when it
-    beats both landmarks staying unshared and every competing pair. The total
-    score is maximised by an assignment on each connected component of the
-    positively scored pairs.
-
-    Parameters
-    ----------
-    P, x : (n_p, 2), (n_q, 2) ndarray
-        p's landmarks and q's mapped into p's frame.
-    cov_p, cov_x : (n_p, 2, 2), (n_q, 2, 2) ndarray
-        Their covariances in p's frame.
-    log_prior : float
-    with_margin : bool, default True
-        Compute ``margin`` (one more assignment per contested pair: most of
-        the cost where many pairs compete).
-    candidates : tuple, optional
-        ``pair_log_odds(P, x, cov_p, cov_x, L)`` for some ``L >= log_prior``
-        (computed once for several priors); by default, for ``log_prior``.
-
-    Returns
-    -------
-    pairs : (K, 2) int ndarray
-        (p index, q index), sorted by p index.
-    margin : (K,) ndarray or None
-        Score lost if the pair were forbidden and one of its landmarks paired
-        otherwise (inf when no competing pairing exists); small margins mark
-        pairs the data cannot tell from a swap. None unless ``with_margin``.
-    """
-    empty = np.empty((0, 2), dtype=np.intp), (np.empty(0) if with_margin else None)
-    i, j, log_odds = pair_log_odds(P, x, cov_p, cov_x, log_prior) if candidates is None else candidates
-    score = log_odds + log_prior
-    keep = score > 0
-    i, j, score = i[keep], j[keep], score[keep]
-    if i.size == 0:
-        return empty
-    # The common case: a candidate alone in its row and column, a component of its own (no contest).
-    single = (np.bincount(i)[i] == 1) & (np.bincount(j)[j] == 1)
-    p_of, q_of, margins = [i[single]], [j[single]], [np.full(int(single.sum()), np.inf)]
-    i, j, score = i[~single], j[~single], score[~single]
-    comp = candidate_components(i, j, len(P), len(x)) if i.size else i
-    for rows, cols, gain in component_blocks(i, j, score, comp, 0.0):
-        r, c = linear_sum_assignment(gain, maximize=True)
-        value = gain[r, c]
-        keep = value > 0
-        p_of.append(rows[r[keep]])
-        q_of.append(cols[c[keep]])
-        if with_margin:
-            margins.append(_margins(gain, r[keep], c[keep], value.sum()))
-    pairs = np.stack([np.concatenate(p_of), np.concatenate(q_of)], axis=1).astype(np.intp)
-    order = np.argsort(pairs[:, 0], kind="stable")
-    return pairs[order], (np.concatenate(margins)[order] if with_margin else None)
-
-
-#: Components of more landmarks (rows or columns) than this get no margins: one assignment per pair would
-#: cost O(m⁴) (49 s for one 2,000-landmark component, σ half the landmark spacing); where so many pairs
-#: compete they are contested anyway, and are reported so (margin 0).
-MAX_MARGIN_COMPONENT = 300
-
-
-def _margins(gain, r, c, best):
-    """Score lost by forbidding each pair (r, c) of one component's optimal assignment (value ``best``)
-    when the best assignment without it re-pairs one of its landmarks, inf otherwise (0 for every pair of a
-    component larger than ``MAX_MARGIN_COMPONENT``)."""
-    if max(gain.shape) > MAX_MARGIN_COMPONENT:
-        return np.zeros(len(r))
-    margin = np.full(len(r), np.inf)
-    for m, (a, b) in enumerate(zip(r, c)):
-        alt = gain.copy()
-        alt[a, b] = 0.0
-        ra, ca = linear_sum_assignment(alt, maximize=True)
-        used = alt[ra, ca] > 0
-        # Only a re-pairing of a or b is a contest; both left unshared is not a swap.
-        if np.any(used & ((ra == a) | (ca == b))):
-            margin[m] = best - alt[ra[used], ca[used]].sum()
-    return margin
-
-
-def associate(P, Q, alignment, sigma, cov_p=None, cov_q=None, hulls=None, with_margin=True):
-    """One-to-one landmark association under a fitted transform (``posterior_association``).
-
-    The pair covariance is p's noise plus q's brought into p's frame plus the
-    fitted transform's error at q_j; landmark noise is σ² I unless
-    ``cov_p``/``cov_q`` (n, 2, 2) are given. λ_q is q's landmark count over
-    its convex hull's area; π starts at ``SHARED_PRIOR`` and is re-estimated
-    from the association (``PRIOR_ROUNDS``).
-
-    Parameters
-    ----------
-    P, Q : (n_p, 2), (n_q, 2) ndarray
-    alignment : Alignment
-        The fitted transform: anything with ``theta``, ``t`` and ``cov``, the
-        covariance of (θ, t) (``metrics.KnownTransform`` for an exact one).
-    sigma : float
-    cov_p, cov_q : (n, 2, 2) ndarray, optional
-    hulls : (ConvexHull, ConvexHull), optional
-        The convex hulls of P and Q, when the caller has them (Qhull costs
-        about as much as the rest of an association of small maps).
-    with_margin : bool, default True
-        Find the contested pairs (``posterior_association``'s margins: most of
-        its cost where many pairs compete); without, ``contested`` is None.
-
-    Returns
-    -------
-    pairs : (K, 2) int ndarray
-        Landmark pairs (p, q), sorted by p index.
-    contested : (K,) bool ndarray or None
-        Pairs whose best alternative assignment is within ``AMBIGUITY`` in
-        log-likelihood (e.g. two landmarks closer than the noise, which can swap).
-    """
-    x = (Q - alignment.t) @ rotation(alignment.theta)
-    cov_x = mapped_covariance(x, alignment.theta, alignment.cov, sigma**2 if cov_q is None else cov_q)
-    cov_p = _own_covariances(cov_p, len(P), sigma)
-    hull_p, hull_q = (ConvexHull(P), ConvexHull(Q)) if hulls is None else hulls
-    log_density = np.log(len(Q) / hull_q.volume)
-    inside = inside_hull(hull_p, x)
-    # The pair covariance of each q landmark among p's, with a typical p landmark.
-    det_pair = np.linalg.det(cov_x[inside] + np.median(cov_p, axis=0))
-    shared = SHARED_PRIOR
-    # The candidates of the largest prior any round can reach serve every round.
-    candidates = pair_log_odds(P, x, cov_p, cov_x, np.log(SHARED_RANGE[1] / (1 - SHARED_RANGE[1])) - log_density)
-    for round_ in range(1, PRIOR_ROUNDS + 1):
-        log_prior = np.log(shared / (1 - shared)) - log_density
-        # Only the association returned needs its margins.
-        pairs, margin = posterior_association(P, x, cov_p, cov_x, log_prior,
-                                              with_margin=with_margin and round_ == PRIOR_ROUNDS,
-                                              candidates=candidates)
-        if round_ == PRIOR_ROUNDS:
-            break
-        # π re-estimated as the paired share of q's landmarks among p's, over the share of
-        # shared ones the association can pair at this π: a true pair scores above "unshared"
-        # within the Mahalanobis radius d², which it falls inside with probability 1 - exp(-d²/2).
-        d2 = np.maximum(2 * (log_prior - np.log(2 * np.pi * np.sqrt(det_pair))), 0.0)
-        recall = np.sum(1 - np.exp(-d2 / 2))
-        shared = float(np.clip(np.sum(inside[pairs[:, 1]]) / max(recall, 1e-9), *SHARED_RANGE))
-    return pairs, (margin < AMBIGUITY if with_margin else None)
-
-
 def match_nfa(P, Q, alignment, pairs, n_hypotheses: int, sigma: float, cov_p=None, cov_q=None,
               hull=None) -> float:
     """Number of false alarms of a match, a contrario (Moisan & Stival 2004).
@@ -438,7 +240,7 @@ def match_nfa(P, Q, alignment, pairs, n_hypotheses: int, sigma: float, cov_p=Non
     NFA <= ``MATCH_NFA`` is expected to arise by chance at most that often.
     ``hull``: P's convex hull, when the caller has it.
     """
-    cov_p = _own_covariances(cov_p, len(P), sigma)
+    cov_p = own_covariances(cov_p, len(P), sigma)
     x = (Q - alignment.t) @ rotation(alignment.theta)
     cov_x = mapped_covariance(x, alignment.theta, alignment.cov, sigma**2 if cov_q is None else cov_q)
     cov = cov_x + np.median(np.trace(cov_p, axis1=1, axis2=2) / 2) * np.eye(2)  # a typical p landmark
@@ -457,43 +259,6 @@ def match_nfa(P, Q, alignment, pairs, n_hypotheses: int, sigma: float, cov_p=Non
     log_nfa = np.log(n_hypotheses) + log_comb + free * np.log(np.maximum(alpha, 1e-300))
     return float(np.exp(log_nfa.min())) if k.size else float(n_hypotheses)
 
-
-def declared_triangles(vertices_p, vertices_q, pairs, P, Q, sigma):
-    """Triangle pairs whose three landmarks are all associated.
-
-    Parameters
-    ----------
-    vertices_p, vertices_q : (Tp, 3), (Tq, 3) int ndarray
-        Groth-ordered triangles of the two maps.
-    pairs : (K, 2) int ndarray
-        Landmark associations.
-
-    Returns
-    -------
-    tri_pairs : (D, 2) int ndarray
-        (p triangle, q triangle) index pairs.
-    log_lr : (D,) ndarray
-        Their log Λ, the q vertices paired with p's Groth order.
-    """
-    to_q = np.full(P.shape[0], -1, dtype=np.int64)
-    to_q[pairs[:, 0]] = pairs[:, 1]
-    mapped = to_q[vertices_p]  # (Tp, 3)
-    full = np.all(mapped >= 0, axis=1)
-    n_q = np.int64(Q.shape[0])
-
-    def key(v):
-        v = np.sort(v, axis=1).astype(np.int64)
-        return (v[:, 0] * n_q + v[:, 1]) * n_q + v[:, 2]
-
-    kq = key(vertices_q)
-    order = np.argsort(kq)
-    tp_idx = np.flatnonzero(full)
-    kp = key(mapped[tp_idx])
-    pos = np.clip(np.searchsorted(kq, kp, sorter=order), 0, kq.size - 1)
-    hit = kq[order[pos]] == kp
-    tri_pairs = np.stack([tp_idx[hit], order[pos[hit]]], axis=1)
-    _, _, cost = paired_transforms(P[vertices_p[tri_pairs[:, 0]]], Q[mapped[tri_pairs[:, 0]]])
-    return tri_pairs, -cost / (2.0 * sigma**2)
 
 
 def _mixture_associate(P, Q, pairs, sigma, cov_p, cov_q, hulls):

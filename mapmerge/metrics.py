@@ -393,7 +393,7 @@ def oracle_association(P, Q, theta, t, cov_p, cov_q, density_q: float, p_shared:
     (K, 2) int ndarray
         Pairs (p index, q index), sorted by p index.
     """
-    from .consensus import posterior_association
+    from .association import posterior_association
 
     if not density_q > 0 or not 0 < p_shared < 1:
         raise ValueError("density_q must be > 0 and p_shared in (0, 1)")
@@ -417,7 +417,7 @@ def transform_oracle_association(P, Q, theta, t, sigma: float, cov_p=None, cov_q
 
     ``oracle_association`` also knows the landmark density and the true
     prior π that a landmark is shared; this oracle estimates π from the maps
-    exactly as ``consensus.associate`` does, so the gap between a matcher and
+    exactly as ``association.associate`` does, so the gap between a matcher and
     it is what the matcher's transform error costs, and the gap between the
     two oracles is what not knowing π costs. Labelled an oracle: it uses
     ground truth.
@@ -436,7 +436,7 @@ def transform_oracle_association(P, Q, theta, t, sigma: float, cov_p=None, cov_q
     (K, 2) int ndarray
         Pairs (p index, q index), sorted by p index.
     """
-    from .consensus import associate
+    from .association import associate
 
     known = KnownTransform(float(theta), np.asarray(t, dtype=float))
     return associate(np.asarray(P, float), np.asarray(Q, float), known, float(sigma), cov_p, cov_q,
@@ -448,7 +448,7 @@ def oracle_pairs_batch(scenarios) -> dict:
 
     ``oracle_association`` uses the scenarios' true transforms, covariances
     and association prior (``density``, ``p_shared`` within
-    ``consensus.SHARED_RANGE``): the best any matcher could do.
+    ``association.SHARED_RANGE``): the best any matcher could do.
     ``transform_oracle_association`` knows only the true transform.
     Labelled oracles: they use ground truth.
 
@@ -462,7 +462,7 @@ def oracle_pairs_batch(scenarios) -> dict:
     B = len(scenarios)
     counts = {key: np.zeros(B, np.int64) for key in ("oracle_correct_pairs", "oracle_wrong_pairs",
                                                      "transform_oracle_correct_pairs", "transform_oracle_wrong_pairs")}
-    from .consensus import SHARED_RANGE
+    from .association import SHARED_RANGE
 
     # The prior is one number for every landmark, also those outside the
     # overlap, where none is shared: kept within the range consensus allows

@@ -60,7 +60,7 @@ import numpy as np
 from scipy.spatial import ConvexHull, cKDTree
 
 from .alignment import Alignment, fit_transforms, rotate, rotation
-from .consensus import associate, declared_triangles
+from .association import associate, declared_triangles
 from .exhaustive import bump_height, em_refine, exact_log_lr, inside_hull, null_log_tail, pair_noise
 from .result import MergeBatch, build_from_parts
 from .triangles import PARALLEL_MIN_LANDMARKS, TriangleBatch

@@ -5,7 +5,6 @@ import pytest
 
 import mapmerge as mm
 from mapmerge import metrics
-from mapmerge.consensus import posterior_association
 
 
 def _counts(sc, res):
@@ -86,17 +85,6 @@ def test_association_at_10_db_pairs_about_as_many_landmarks_as_the_oracle():
             oracle_wrong += oracle["oracle_wrong_pairs"][k]
     assert found >= 10
     assert correct >= 0.97 * oracle_correct and wrong <= 1.1 * oracle_wrong
-
-
-def test_posterior_association_margins_are_optional():
-    # Skipping the margins (one assignment per contested pair) must not change the pairs.
-    sc = mm.simulate.make_pair(100, 0.75, 5.0, rng=3)
-    x = mm.alignment.rotate(-sc.theta, sc.q - sc.t)
-    cov = np.broadcast_to(sc.sigma**2 * np.eye(2), (100, 2, 2))
-    pairs, margin = posterior_association(sc.p, x, cov, cov, np.log(4.0) - np.log(sc.density))
-    fast, none = posterior_association(sc.p, x, cov, cov, np.log(4.0) - np.log(sc.density), with_margin=False)
-    np.testing.assert_array_equal(fast, pairs)
-    assert none is None and len(margin) == len(pairs) and np.any(np.isfinite(margin))
 
 
 def test_hypotheses_refitted_together_give_the_groups_refitted_one_at_a_time(monkeypatch):

@@ -1,0 +1,262 @@
+"""Landmark association under a fitted transform (beyond the paper).
+
+Once a rigid motion (θ, t) relates two maps, which landmark of q is which
+of p? ``associate`` answers one-to-one, by posterior log-odds against
+"unshared": ``posterior_association`` scores every pair by its full
+covariance (both maps' noise and the transform's error) and q's landmark
+density, and solves one assignment per connected component of the
+positively scored pairs, with each pair's margin to its best alternative
+(``AMBIGUITY`` marks the contested ones). The prior that a landmark is
+shared starts at ``SHARED_PRIOR`` and is re-estimated from the association.
+``declared_triangles`` turns an association back into the triangle pairs
+it implies.
+
+``mapmerge.consensus`` and ``mapmerge.search`` associate with it;
+``mapmerge.metrics`` uses it for its oracles.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+from scipy.spatial import ConvexHull, cKDTree
+
+from .alignment import mapped_covariance, paired_transforms, rotation
+from .exhaustive import inside_hull
+from .matching import candidate_components, component_blocks
+
+#: Log-likelihood margin under which two landmark assignments are
+#: indistinguishable (a likelihood ratio below 1,000): triangles on such
+#: contested landmarks are not declared, though the landmarks are still
+#: fused. Why 1,000 and not 100: docs/tuning.md.
+AMBIGUITY = np.log(1000.0)
+#: Prior probability π that a q landmark mapped among p's is shared, in the
+#: association's unshared hypothesis (and the EM step's mixture): starts here,
+#: then is re-estimated from the association (the paired share of q's landmarks
+#: inside p's hull over the share the association can pair at that π, see
+#: ``associate``) within ``SHARED_RANGE``, ``PRIOR_ROUNDS`` associations in all.
+#: The division by that recall keeps the estimate from settling at a
+#: self-consistent low value at low SNR (tuning seeds and numbers: docs/tuning.md).
+SHARED_PRIOR = 0.8
+SHARED_RANGE = (0.1, 0.99)
+#: Associations in all; the last is the one returned (see ``associate``).
+PRIOR_ROUNDS = 3
+
+
+def own_covariances(cov, n: int, sigma: float) -> np.ndarray:
+    """The landmarks' covariances, σ² I when none are given."""
+    return np.broadcast_to(sigma**2 * np.eye(2), (n, 2, 2)) if cov is None else cov
+
+
+
+def pair_log_odds(P, x, cov_p, cov_x, log_prior: float):
+    """Every pair that can score > 0 at ``log_prior`` (or any smaller prior), and its score without the prior.
+
+    A pair scores > 0 only if d² < 2 (log_prior - log(2π √det C)), and
+    det C >= min det Σp + min det Σx, the largest eigenvalue of C at most the
+    sum of the largest ones: that bounds the search radius.
+
+    Returns
+    -------
+    i, j : (C,) int ndarray
+        Candidate pairs (p index, index into x).
+    log_odds : (C,) ndarray
+        ``log N(P_i - x_j; 0, cov_p[i] + cov_x[j])``.
+    """
+    none = np.empty(0, dtype=np.intp)
+    det_min = np.linalg.det(cov_p).min() + np.linalg.det(cov_x).min()
+    largest = np.linalg.eigvalsh(cov_p)[:, 1].max() + np.linalg.eigvalsh(cov_x)[:, 1].max()
+    d2_max = 2 * (log_prior - np.log(2 * np.pi * np.sqrt(det_min)))
+    if d2_max <= 0:
+        return none, none, np.empty(0)
+    cand = cKDTree(P).sparse_distance_matrix(cKDTree(x), np.sqrt(d2_max * largest), output_type="ndarray")
+    i, j = cand["i"], cand["j"]
+    C = cov_p[i] + cov_x[j]
+    e = P[i] - x[j]
+    d2 = np.einsum("ki,kij,kj->k", e, np.linalg.inv(C), e)
+    return i, j, -0.5 * d2 - np.log(2 * np.pi * np.sqrt(np.linalg.det(C)))
+
+
+def posterior_association(P, x, cov_p, cov_x, log_prior: float, with_margin: bool = True, candidates=None):
+    """The maximum-posterior one-to-one association of P and mapped q landmarks x.
+
+    Pair (i, j) scores its log-odds against "both unshared":
+    ``s_ij = log N(P_i - x_j; 0, cov_p[i] + cov_x[j]) + log_prior`` with
+    ``log_prior = log(π / (1 - π)) - log λ_q`` (π the prior that a landmark
+    is shared, λ_q the density of q landmarks: an unshared one is anywhere).
+    Leaving a landmark unpaired scores 0, so a pair is made only when it
+    beats both landmarks staying unshared and every competing pair. The total
+    score is maximised by an assignment on each connected component of the
+    positively scored pairs.
+
+    Parameters
+    ----------
+    P, x : (n_p, 2), (n_q, 2) ndarray
+        p's landmarks and q's mapped into p's frame.
+    cov_p, cov_x : (n_p, 2, 2), (n_q, 2, 2) ndarray
+        Their covariances in p's frame.
+    log_prior : float
+    with_margin : bool, default True
+        Compute ``margin`` (one more assignment per contested pair: most of
+        the cost where many pairs compete).
+    candidates : tuple, optional
+        ``pair_log_odds(P, x, cov_p, cov_x, L)`` for some ``L >= log_prior``
+        (computed once for several priors); by default, for ``log_prior``.
+
+    Returns
+    -------
+    pairs : (K, 2) int ndarray
+        (p index, q index), sorted by p index.
+    margin : (K,) ndarray or None
+        Score lost if the pair were forbidden and one of its landmarks paired
+        otherwise (inf when no competing pairing exists); small margins mark
+        pairs the data cannot tell from a swap. None unless ``with_margin``.
+    """
+    empty = np.empty((0, 2), dtype=np.intp), (np.empty(0) if with_margin else None)
+    i, j, log_odds = pair_log_odds(P, x, cov_p, cov_x, log_prior) if candidates is None else candidates
+    score = log_odds + log_prior
+    keep = score > 0
+    i, j, score = i[keep], j[keep], score[keep]
+    if i.size == 0:
+        return empty
+    # The common case: a candidate alone in its row and column, a component of its own (no contest).
+    single = (np.bincount(i)[i] == 1) & (np.bincount(j)[j] == 1)
+    p_of, q_of, margins = [i[single]], [j[single]], [np.full(int(single.sum()), np.inf)]
+    i, j, score = i[~single], j[~single], score[~single]
+    comp = candidate_components(i, j, len(P), len(x)) if i.size else i
+    for rows, cols, gain in component_blocks(i, j, score, comp, 0.0):
+        r, c = linear_sum_assignment(gain, maximize=True)
+        value = gain[r, c]
+        keep = value > 0
+        p_of.append(rows[r[keep]])
+        q_of.append(cols[c[keep]])
+        if with_margin:
+            margins.append(_margins(gain, r[keep], c[keep], value.sum()))
+    pairs = np.stack([np.concatenate(p_of), np.concatenate(q_of)], axis=1).astype(np.intp)
+    order = np.argsort(pairs[:, 0], kind="stable")
+    return pairs[order], (np.concatenate(margins)[order] if with_margin else None)
+
+
+
+#: Components of more landmarks (rows or columns) than this get no margins: one assignment per pair would
+#: cost O(m⁴) (49 s for one 2,000-landmark component, σ half the landmark spacing); where so many pairs
+#: compete they are contested anyway, and are reported so (margin 0).
+MAX_MARGIN_COMPONENT = 300
+
+
+def _margins(gain, r, c, best):
+    """Score lost by forbidding each pair (r, c) of one component's optimal assignment (value ``best``)
+    when the best assignment without it re-pairs one of its landmarks, inf otherwise (0 for every pair of a
+    component larger than ``MAX_MARGIN_COMPONENT``)."""
+    if max(gain.shape) > MAX_MARGIN_COMPONENT:
+        return np.zeros(len(r))
+    margin = np.full(len(r), np.inf)
+    for m, (a, b) in enumerate(zip(r, c)):
+        alt = gain.copy()
+        alt[a, b] = 0.0
+        ra, ca = linear_sum_assignment(alt, maximize=True)
+        used = alt[ra, ca] > 0
+        # Only a re-pairing of a or b is a contest; both left unshared is not a swap.
+        if np.any(used & ((ra == a) | (ca == b))):
+            margin[m] = best - alt[ra[used], ca[used]].sum()
+    return margin
+
+
+def associate(P, Q, alignment, sigma, cov_p=None, cov_q=None, hulls=None, with_margin=True):
+    """One-to-one landmark association under a fitted transform (``posterior_association``).
+
+    The pair covariance is p's noise plus q's brought into p's frame plus the
+    fitted transform's error at q_j; landmark noise is σ² I unless
+    ``cov_p``/``cov_q`` (n, 2, 2) are given. λ_q is q's landmark count over
+    its convex hull's area; π starts at ``SHARED_PRIOR`` and is re-estimated
+    from the association (``PRIOR_ROUNDS``).
+
+    Parameters
+    ----------
+    P, Q : (n_p, 2), (n_q, 2) ndarray
+    alignment : Alignment
+        The fitted transform: anything with ``theta``, ``t`` and ``cov``, the
+        covariance of (θ, t) (``metrics.KnownTransform`` for an exact one).
+    sigma : float
+    cov_p, cov_q : (n, 2, 2) ndarray, optional
+    hulls : (ConvexHull, ConvexHull), optional
+        The convex hulls of P and Q, when the caller has them (Qhull costs
+        about as much as the rest of an association of small maps).
+    with_margin : bool, default True
+        Find the contested pairs (``posterior_association``'s margins: most of
+        its cost where many pairs compete); without, ``contested`` is None.
+
+    Returns
+    -------
+    pairs : (K, 2) int ndarray
+        Landmark pairs (p, q), sorted by p index.
+    contested : (K,) bool ndarray or None
+        Pairs whose best alternative assignment is within ``AMBIGUITY`` in
+        log-likelihood (e.g. two landmarks closer than the noise, which can swap).
+    """
+    x = (Q - alignment.t) @ rotation(alignment.theta)
+    cov_x = mapped_covariance(x, alignment.theta, alignment.cov, sigma**2 if cov_q is None else cov_q)
+    cov_p = own_covariances(cov_p, len(P), sigma)
+    hull_p, hull_q = (ConvexHull(P), ConvexHull(Q)) if hulls is None else hulls
+    log_density = np.log(len(Q) / hull_q.volume)
+    inside = inside_hull(hull_p, x)
+    # The pair covariance of each q landmark among p's, with a typical p landmark.
+    det_pair = np.linalg.det(cov_x[inside] + np.median(cov_p, axis=0))
+    shared = SHARED_PRIOR
+    # The candidates of the largest prior any round can reach serve every round.
+    candidates = pair_log_odds(P, x, cov_p, cov_x, np.log(SHARED_RANGE[1] / (1 - SHARED_RANGE[1])) - log_density)
+    for round_ in range(1, PRIOR_ROUNDS + 1):
+        log_prior = np.log(shared / (1 - shared)) - log_density
+        # Only the association returned needs its margins.
+        pairs, margin = posterior_association(P, x, cov_p, cov_x, log_prior,
+                                              with_margin=with_margin and round_ == PRIOR_ROUNDS,
+                                              candidates=candidates)
+        if round_ == PRIOR_ROUNDS:
+            break
+        # π re-estimated as the paired share of q's landmarks among p's, over the share of
+        # shared ones the association can pair at this π: a true pair scores above "unshared"
+        # within the Mahalanobis radius d², which it falls inside with probability 1 - exp(-d²/2).
+        d2 = np.maximum(2 * (log_prior - np.log(2 * np.pi * np.sqrt(det_pair))), 0.0)
+        recall = np.sum(1 - np.exp(-d2 / 2))
+        shared = float(np.clip(np.sum(inside[pairs[:, 1]]) / max(recall, 1e-9), *SHARED_RANGE))
+    return pairs, (margin < AMBIGUITY if with_margin else None)
+
+
+
+def declared_triangles(vertices_p, vertices_q, pairs, P, Q, sigma):
+    """Triangle pairs whose three landmarks are all associated.
+
+    Parameters
+    ----------
+    vertices_p, vertices_q : (Tp, 3), (Tq, 3) int ndarray
+        Groth-ordered triangles of the two maps.
+    pairs : (K, 2) int ndarray
+        Landmark associations.
+
+    Returns
+    -------
+    tri_pairs : (D, 2) int ndarray
+        (p triangle, q triangle) index pairs.
+    log_lr : (D,) ndarray
+        Their log Λ, the q vertices paired with p's Groth order.
+    """
+    to_q = np.full(P.shape[0], -1, dtype=np.int64)
+    to_q[pairs[:, 0]] = pairs[:, 1]
+    mapped = to_q[vertices_p]  # (Tp, 3)
+    full = np.all(mapped >= 0, axis=1)
+    n_q = np.int64(Q.shape[0])
+
+    def key(v):
+        v = np.sort(v, axis=1).astype(np.int64)
+        return (v[:, 0] * n_q + v[:, 1]) * n_q + v[:, 2]
+
+    kq = key(vertices_q)
+    order = np.argsort(kq)
+    tp_idx = np.flatnonzero(full)
+    kp = key(mapped[tp_idx])
+    pos = np.clip(np.searchsorted(kq, kp, sorter=order), 0, kq.size - 1)
+    hit = kq[order[pos]] == kp
+    tri_pairs = np.stack([tp_idx[hit], order[pos[hit]]], axis=1)
+    _, _, cost = paired_transforms(P[vertices_p[tri_pairs[:, 0]]], Q[mapped[tri_pairs[:, 0]]])
+    return tri_pairs, -cost / (2.0 * sigma**2)
+

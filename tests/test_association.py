@@ -1,0 +1,59 @@
+"""Landmark association under a fitted transform (mapmerge.association)."""
+
+import numpy as np
+
+import mapmerge as mm
+from mapmerge.association import associate, declared_triangles, own_covariances, posterior_association
+from mapmerge.metrics import KnownTransform
+
+
+def _true_pairs(sc):
+    """The (p row, q row) pairs of the landmarks both maps hold."""
+    common, ip, iq = np.intersect1d(sc.ids_p, sc.ids_q, return_indices=True)
+    return np.stack([ip, iq], axis=1)[np.argsort(ip)]
+
+
+def test_associate_at_the_true_transform_pairs_the_common_landmarks():
+    sc = mm.simulate.make_pair(100, 0.75, 30.0, rng=11)
+    pairs, contested = associate(sc.p, sc.q, KnownTransform(sc.theta, sc.t), sc.sigma)
+    truth = {tuple(r) for r in _true_pairs(sc)}
+    found = {tuple(r) for r in pairs}
+    assert len(found & truth) >= 0.95 * len(truth) and len(found - truth) <= 1
+    assert contested.shape == (len(pairs),) and contested.dtype == bool
+    assert np.all(np.diff(pairs[:, 0]) > 0)  # one-to-one, sorted by p
+    assert associate(sc.p, sc.q, KnownTransform(sc.theta, sc.t), sc.sigma, with_margin=False)[1] is None
+
+
+def test_declared_triangles_are_those_with_three_associated_vertices():
+    rng = np.random.default_rng(5)
+    P = rng.uniform(0, 10, (30, 2))
+    perm = rng.permutation(30)
+    Q = mm.alignment.rotate(0.3, P[perm][None])[0] + [2.0, -1.0]  # q row k is p row perm[k]
+    vp, vq = mm.triangulate(P).vertices, mm.triangulate(Q).vertices
+    inverse = np.argsort(perm)
+    pairs = np.stack([np.arange(30), inverse], axis=1)
+    tri_pairs, log_lr = declared_triangles(vp, vq, pairs, P, Q, 0.1)
+    # Noise-free congruent maps: every p triangle has its q counterpart, with log Λ = 0.
+    assert len(tri_pairs) == len(vp) and np.allclose(log_lr, 0.0, atol=1e-9)
+    np.testing.assert_array_equal(np.sort(inverse[vp[tri_pairs[:, 0]]], axis=1), np.sort(vq[tri_pairs[:, 1]], axis=1))
+    # Without landmark 0 associated, exactly the triangles on it drop out.
+    fewer, _ = declared_triangles(vp, vq, pairs[1:], P, Q, 0.1)
+    np.testing.assert_array_equal(np.sort(fewer[:, 0]), np.flatnonzero(~np.any(vp == 0, axis=1)))
+
+
+def test_own_covariances_default_to_sigma_squared():
+    cov = own_covariances(None, 4, 0.5)
+    assert cov.shape == (4, 2, 2) and np.array_equal(cov[2], 0.25 * np.eye(2))
+    given = np.ones((3, 2, 2))
+    assert own_covariances(given, 3, 0.5) is given
+
+
+def test_posterior_association_margins_are_optional():
+    # Skipping the margins (one assignment per contested pair) must not change the pairs.
+    sc = mm.simulate.make_pair(100, 0.75, 5.0, rng=3)
+    x = mm.alignment.rotate(-sc.theta, sc.q - sc.t)
+    cov = np.broadcast_to(sc.sigma**2 * np.eye(2), (100, 2, 2))
+    pairs, margin = posterior_association(sc.p, x, cov, cov, np.log(4.0) - np.log(sc.density))
+    fast, none = posterior_association(sc.p, x, cov, cov, np.log(4.0) - np.log(sc.density), with_margin=False)
+    np.testing.assert_array_equal(fast, pairs)
+    assert none is None and len(margin) == len(pairs) and np.any(np.isfinite(margin))
