@@ -23,8 +23,9 @@ from pathlib import Path
 from hydra.core.config_store import ConfigStore
 from omegaconf import OmegaConf, open_dict
 
+from mapmerge.assignment import OBJECTIVES
 from mapmerge.datasets import SOURCES
-from mapmerge.matching import OBJECTIVES, resolve_log_tau
+from mapmerge.matching import resolve_log_tau
 from mapmerge.merging import METHODS
 from mapmerge.simulate import LAYOUTS, ScenarioError, check_scenario
 

@@ -7,11 +7,15 @@ combining of stochastic maps"; journal version "Maximum likelihood fusion
 of stochastic maps", arXiv:1303.6170), methods that go beyond it, and the
 ground truth and metrics to measure them.
 
-One module per stage: ``triangles``, ``statistic`` (GLRT), ``alignment``,
-``matching`` (LP and driver), ``combining`` (eq. 15), ``consensus``,
-``baselines``, ``result``, ``merging`` (the method registry and
-``merge_maps``), ``group`` (``merge_many``: N maps), ``simulate``, ``metrics``, ``datasets``. Every stage works
-on a batch of map pairs; the one-pair functions are its batch of one.
+One module per stage: ``triangles``, ``statistic`` (GLRT), ``alignment``
+(transform fits), ``assignment`` (the LP), ``matching`` (τ and the
+triangle-matching driver), ``correspondence`` (landmark correspondences by
+vote), ``combining`` (eq. 15), ``association`` (landmark association under a
+transform), ``consensus`` (consensus verification), ``baselines``,
+``result`` (what a merge returns), ``merging`` (the method registry and
+``merge_maps``), ``group`` (``merge_many``: N maps), ``simulate``,
+``metrics``, ``datasets``. Every stage works on a batch of map pairs; the
+one-pair functions are its batch of one.
 
 >>> import mapmerge as mm
 >>> sc = mm.simulate.make_pair(n_landmarks=100, overlap=0.75, snr_db=40, rng=0)

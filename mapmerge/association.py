@@ -22,8 +22,8 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial import ConvexHull, cKDTree
 
 from .alignment import mapped_covariance, paired_transforms, rotation
+from .assignment import candidate_components, component_blocks
 from .exhaustive import inside_hull
-from .matching import candidate_components, component_blocks
 
 #: Log-likelihood margin under which two landmark assignments are
 #: indistinguishable (a likelihood ratio below 1,000): triangles on such

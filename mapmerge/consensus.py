@@ -45,7 +45,8 @@ from .alignment import (
 )
 from .association import SHARED_PRIOR, associate, declared_triangles, own_covariances
 from .exhaustive import bump_height, em_refine, inside_hull, pair_noise
-from .matching import TriangleMatch, correspondences, resolve_correspondences
+from .correspondence import correspondences, resolve_correspondences
+from .matching import TriangleMatch
 from .result import MergeBatch, build_from_parts
 
 #: Tail probability of every χ² gate (a true pair / landmark is rejected

@@ -26,12 +26,14 @@ from . import consensus, search
 from ._validation import (check_covariances, check_finite, check_geometry, check_points, check_rng, check_sigma,
                           check_sigma_range, float_array)
 from .alignment import rotation, wrap_angle
+from .assignment import check_objective
 from .baselines import astroalign as astroalign_baseline
 from .baselines import clipper as clipper_baseline
 from .baselines import cpd as cpd_baseline
 from .baselines import groth as groth_baseline
 from .baselines import teaser as teaser_baseline
-from .matching import TriangleMatch, check_objective, match_triangles, resolve_correspondences, resolve_log_tau
+from .correspondence import resolve_correspondences
+from .matching import TriangleMatch, match_triangles, resolve_log_tau
 from .result import MergeBatch, MergeResult, build_batch
 from .triangles import triangulate_batches
 

@@ -6,7 +6,7 @@ from scipy.sparse.csgraph import min_weight_full_bipartite_matching
 
 
 def lapjvsp_assign(log_lr, pairs, shape, objective="lr"):
-    """``matching.assign_sparse`` by LAPJVsp: each p row gets a private zero-gain dummy partner."""
+    """``assignment.assign_sparse`` by LAPJVsp: each p row gets a private zero-gain dummy partner."""
     n_p, n_q = shape
     gain = np.exp(log_lr) if objective == "lr" else log_lr - log_lr.min()
     graph = coo_matrix((np.r_[gain + 1.0, np.ones(n_p)],

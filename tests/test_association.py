@@ -9,7 +9,7 @@ from mapmerge.metrics import KnownTransform
 
 def _true_pairs(sc):
     """The (p row, q row) pairs of the landmarks both maps hold."""
-    common, ip, iq = np.intersect1d(sc.ids_p, sc.ids_q, return_indices=True)
+    _, ip, iq = np.intersect1d(sc.ids_p, sc.ids_q, return_indices=True)
     return np.stack([ip, iq], axis=1)[np.argsort(ip)]
 
 

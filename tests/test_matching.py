@@ -1,10 +1,13 @@
-"""Matching (mapmerge.matching): τ forms, the LP, correspondences and their conflict rule."""
+"""Matching: τ forms (mapmerge.matching), the LP (mapmerge.assignment), correspondences and their conflict
+rule (mapmerge.correspondence)."""
 
 import numpy as np
 import pytest
 
 import mapmerge as mm
-from mapmerge.matching import assign, assign_sparse, correspondences, local_numbering
+from mapmerge import correspondence
+from mapmerge.assignment import assign, assign_sparse, local_numbering
+from mapmerge.correspondence import correspondences, resolve_correspondences
 
 from lp_reference import lapjvsp_assign
 
@@ -42,14 +45,14 @@ def test_correspondences_equal_the_sequential_greedy(monkeypatch, key_table_fact
     """Both ways of grouping candidates (a sort, a table of keys) give the rule's answer, with
     scores and by votes alone, and among the candidates with two votes or more (Groth's); the landmark
     indices carry offsets as a batch of map pairs has."""
-    monkeypatch.setattr(mm.matching, "KEY_TABLE_FACTOR", key_table_factor)
+    monkeypatch.setattr(correspondence, "KEY_TABLE_FACTOR", key_table_factor)
     rng = np.random.default_rng(7)
     for _ in range(1500):
         m, n = int(rng.integers(1, 12)), int(rng.integers(3, 25) if min_votes == 1 else rng.integers(3, 8))
         vp = np.array([rng.choice(n, 3, replace=False) for _ in range(m)]) + 40 * int(rng.integers(0, 3))
         vq = np.array([rng.choice(n, 3, replace=False) for _ in range(m)]) + 40 * int(rng.integers(0, 3))
         scores = np.round(rng.normal(size=m), 1) if scored else np.zeros(m)  # ties in score happen
-        uniq, keep, votes = mm.matching.resolve_correspondences(vp, vq, scores if scored else None, min_votes)
+        uniq, keep, votes = resolve_correspondences(vp, vq, scores if scored else None, min_votes)
         expected, dropped = _sequential_greedy(vp, vq, scores, min_votes)
         assert [tuple(p) for p in uniq[keep].tolist()] == expected
         assert np.count_nonzero((votes >= min_votes) & ~keep) == dropped
@@ -122,7 +125,7 @@ def test_candidate_components_are_the_connected_components_of_the_candidate_grap
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    from mapmerge.matching import LABEL_SWEEPS, candidate_components
+    from mapmerge.assignment import LABEL_SWEEPS, candidate_components
 
     rng = np.random.default_rng(5)
     chain = np.arange(4 * LABEL_SWEEPS)  # p0-q0-p1-q1-...: too long for the sweeps, so scipy decides
@@ -139,7 +142,7 @@ def test_candidate_components_are_the_connected_components_of_the_candidate_grap
 
 
 def test_component_blocks_hold_each_components_candidates_between_its_sorted_rows_and_columns():
-    from mapmerge.matching import candidate_components, component_blocks
+    from mapmerge.assignment import candidate_components, component_blocks
 
     rng = np.random.default_rng(6)
     for _ in range(200):

@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..alignment import reject_outliers_batch
-from ..matching import resolve_correspondences
+from ..correspondence import resolve_correspondences
 from ..result import MergeBatch, build_batch
 from ..statistic import BLOCK_PAIRS, min_cost
 from ..triangles import TriangleBatch
