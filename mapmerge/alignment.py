@@ -13,7 +13,7 @@ and the minimum of eq. (5), J* = ½ Σ ‖R(θ*) p_k + t* - q_k‖², which is
 ``fit_transforms`` solves many independent problems at once (ragged sets
 tagged by a trial index, one sum per trial in a fixed order), so one set
 alone and the same set in a batch give the same bits; ``align`` is the
-batch of one.
+batch of one, and ``fit_matched`` the fit of every merge's correspondences.
 """
 
 from __future__ import annotations
@@ -105,6 +105,34 @@ def fit_transforms(trial: np.ndarray, P: np.ndarray, Q: np.ndarray, n_trials: in
     # Optimal µ is the midpoint, so each pair leaves half its squared gap.
     cost = 0.5 * np.bincount(trial, rx**2 + ry**2, n_trials)
     return theta, t, cost
+
+
+def fit_matched(P: np.ndarray, Q: np.ndarray, pair_trial: np.ndarray, pairs: np.ndarray, min_pairs: int):
+    """The n-point closed form of every map pair with at least ``min_pairs`` landmark correspondences.
+
+    Parameters
+    ----------
+    P, Q : (B, n_p, 2), (B, n_q, 2) ndarray
+        The maps.
+    pair_trial, pairs : (K,), (K, 2) int ndarray
+        Landmark correspondences (p index, q index) and their map pair.
+    min_pairs : int
+        Fewest correspondences fitted; map pairs with fewer are not matched.
+
+    Returns
+    -------
+    matched : (B,) bool ndarray
+    theta, t, cost : (B,), (B, 2), (B,) ndarray
+        θ*, t* and J* (``fit_transforms``) of the matched map pairs, NaN for the others.
+    """
+    B = len(P)
+    matched = np.bincount(pair_trial, minlength=B) >= min_pairs
+    use = matched[pair_trial]
+    kt, pi, qi = pair_trial[use], pairs[use, 0], pairs[use, 1]
+    theta, t, cost = fit_transforms(kt, P[kt, pi], Q[kt, qi], B)
+    theta, cost = np.where(matched, theta, np.nan), np.where(matched, cost, np.nan)
+    t = np.where(matched[:, None], t, np.nan)
+    return matched, theta, t, cost
 
 
 def paired_transforms(coords_p, coords_q):

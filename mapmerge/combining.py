@@ -96,7 +96,7 @@ class CombinedBatch:
 
 
 def combine_batch(P: np.ndarray, Q: np.ndarray, pair_trial: np.ndarray, pairs: np.ndarray,
-                  matched: np.ndarray, theta: np.ndarray, t: np.ndarray, cov_p: np.ndarray | None = None,
+                  matched: np.ndarray, theta: np.ndarray, t: np.ndarray, *, cov_p: np.ndarray | None = None,
                   cov_q: np.ndarray | None = None) -> CombinedBatch:
     """Eq. (15) for B map pairs, information-weighted when covariances are given.
 
@@ -143,10 +143,7 @@ def combine_batch(P: np.ndarray, Q: np.ndarray, pair_trial: np.ndarray, pairs: n
     fused, row_cov = 0.5 * (P[kt, pi] + mapped[kt, qi]), None
     if cov_p is not None:
         cov_q_in_p = covariance_in_p_frame(theta, cov_q)
-        info_p, info_q = np.linalg.inv(cov_p[kt, pi]), np.linalg.inv(cov_q_in_p[kt, qi])
-        fused_cov = np.linalg.inv(info_p + info_q)
-        fused = np.einsum("kij,kj->ki", fused_cov, np.einsum("kij,kj->ki", info_p, P[kt, pi])
-                          + np.einsum("kij,kj->ki", info_q, mapped[kt, qi]))
+        fused, fused_cov = _information_mean(P[kt, pi], cov_p[kt, pi], mapped[kt, qi], cov_q_in_p[kt, qi])
         row_cov = np.concatenate([fused_cov, cov_p[tp_, ip], cov_q_in_p[tq_, iq]])
     points = np.concatenate([fused, P[tp_, ip], mapped[tq_, iq]])
     index_p = np.concatenate([pi, ip, np.full(iq.size, -1)])
@@ -156,3 +153,12 @@ def combine_batch(P: np.ndarray, Q: np.ndarray, pair_trial: np.ndarray, pairs: n
     return CombinedBatch(trial=trial[order], offsets=np.concatenate(([0], np.cumsum(count))), points=points[order],
                          origin=section[order].astype(np.int8), index_p=index_p[order].astype(np.intp),
                          index_q=index_q[order].astype(np.intp), cov=None if row_cov is None else row_cov[order])
+
+
+def _information_mean(p: np.ndarray, cov_p: np.ndarray, q: np.ndarray, cov_q: np.ndarray):
+    """The information-weighted mean of paired points (K, 2) with covariances (K, 2, 2), and its covariance."""
+    info_p, info_q = np.linalg.inv(cov_p), np.linalg.inv(cov_q)
+    fused_cov = np.linalg.inv(info_p + info_q)
+    fused = np.einsum("kij,kj->ki", fused_cov, np.einsum("kij,kj->ki", info_p, p)
+                      + np.einsum("kij,kj->ki", info_q, q))
+    return fused, fused_cov

@@ -1,9 +1,10 @@
 """What a merge returns: ``MergeResult`` for one map pair, ``MergeBatch`` for many.
 
 Every method (the paper's, its variants, the baselines) ends the same way:
-landmark correspondences go to ``build_batch``, which fits the n-point
-closed form for every map pair with at least ``MIN_MATCHED_LANDMARKS``
-correspondences and builds the combined maps (eq. 15). A ``MergeBatch``
+landmark correspondences go to ``build_batch``, which assembles the
+``MergeBatch`` from the n-point closed form of every map pair with at least
+``MIN_MATCHED_LANDMARKS`` correspondences (``alignment.fit_matched``) and
+the combined maps (eq. 15, ``combining.combine_batch``). A ``MergeBatch``
 holds ragged arrays tagged by map pair; ``MergeBatch.result(b)`` is map
 pair b's ``MergeResult``.
 """
@@ -15,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .alignment import Alignment, fit_transforms
+from .alignment import Alignment, fit_matched
 from .combining import FUSED, ORIGINS, CombinedBatch, CombinedMap, combine_batch
 from .triangles import TriangleBatch, Triangles
 
@@ -120,7 +121,8 @@ class MergeBatch:
     def with_covariances(self, cov_p: np.ndarray, cov_q: np.ndarray) -> "MergeBatch":
         """The same merges with the combined maps fused by information weighting (``combine_batch``)."""
         return dataclasses.replace(self, combined=combine_batch(self.P, self.Q, self.pair_trial, self.pairs,
-                                                                self.matched, self.theta, self.t, cov_p, cov_q))
+                                                                self.matched, self.theta, self.t,
+                                                                cov_p=cov_p, cov_q=cov_q))
 
     def result(self, b: int) -> MergeResult:
         """Map pair b's ``MergeResult``."""
@@ -177,13 +179,7 @@ def build_batch(*, method: str, P: np.ndarray, Q: np.ndarray, sigma: np.ndarray,
     -------
     MergeBatch
     """
-    B = len(P)
-    matched = np.bincount(pair_trial, minlength=B) >= MIN_MATCHED_LANDMARKS
-    use = matched[pair_trial]
-    kt, pi, qi = pair_trial[use], pairs[use, 0], pairs[use, 1]
-    theta, t, cost = fit_transforms(kt, P[kt, pi], Q[kt, qi], B)
-    theta, cost = np.where(matched, theta, np.nan), np.where(matched, cost, np.nan)
-    t = np.where(matched[:, None], t, np.nan)
+    matched, theta, t, cost = fit_matched(P, Q, pair_trial, pairs, MIN_MATCHED_LANDMARKS)
     return MergeBatch(
         method=method, P=P, Q=Q, sigma=sigma, log_tau=log_tau, tri_p=tri_p, tri_q=tri_q,
         tri_trial=tri_trial, triangle_pairs=triangle_pairs, triangle_log_lr=triangle_log_lr,

@@ -47,3 +47,19 @@ def test_mapped_covariance_matches_monte_carlo():
     x = np.stack([rotate(-d[0], (nq - d[1:])[None])[0] for d, nq in zip(draws, noisy_q)])
     predicted = mapped_covariance(x_true, theta, cov_tt, own)[0]
     np.testing.assert_allclose(np.cov(x.T), predicted, rtol=0.05, atol=1e-7)
+
+
+def test_fit_matched_fits_the_map_pairs_with_enough_correspondences_and_nan_the_rest():
+    from mapmerge.alignment import fit_matched, fit_transforms
+
+    rng = np.random.default_rng(4)
+    P = rng.uniform(0, 10, (3, 8, 2))
+    Q = rotate(np.array([0.2, -1.0, 2.5]), P) + rng.normal(0, 0.01, (3, 8, 2))
+    pair_trial = np.array([0, 0, 0, 0, 1, 1])
+    pairs = np.array([[0, 0], [1, 1], [2, 2], [5, 5], [3, 3], [4, 4]])
+    matched, theta, t, cost = fit_matched(P, Q, pair_trial, pairs, 3)
+    assert matched.tolist() == [True, False, False]
+    alone = fit_transforms(np.zeros(4, np.intp), P[0, pairs[:4, 0]], Q[0, pairs[:4, 1]], 1)
+    assert theta[0] == alone[0][0] and np.array_equal(t[0], alone[1][0]) and cost[0] == alone[2][0]
+    assert abs(theta[0] - 0.2) < 0.01
+    assert np.isnan(theta[1:]).all() and np.isnan(t[1:]).all() and np.isnan(cost[1:]).all()

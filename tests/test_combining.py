@@ -44,7 +44,8 @@ def test_information_weighted_fusion_matches_monte_carlo():
     # fitted transform's own error (documented), which a fitted transform would add.
     th, tt = np.full(draws, theta), np.broadcast_to(t, (draws, 2))
     combined = combine_batch(P, Q, trial, pairs, np.ones(draws, bool), th, tt,
-                             np.broadcast_to(cov_p, (draws, n, 2, 2)), np.broadcast_to(cov_q, (draws, n, 2, 2)))
+                             cov_p=np.broadcast_to(cov_p, (draws, n, 2, 2)),
+                             cov_q=np.broadcast_to(cov_q, (draws, n, 2, 2)))
     fused = combined.points.reshape(draws, n, 2)
     predicted = combined.cov.reshape(draws, n, 2, 2).mean(axis=0)
     err = fused - world
