@@ -44,7 +44,7 @@ from .alignment import (
     reject_outliers, rotate, rotation, transform_covariances, wrap_angle,
 )
 from .association import SHARED_PRIOR, associate, declared_triangles, own_covariances
-from .exhaustive import bump_height, em_refine, inside_hull, pair_noise
+from .exhaustive import Mixture, bump_height, inside_hull, pair_noise
 from .correspondence import correspondences, resolve_correspondences
 from .matching import TriangleMatch
 from .result import MergeBatch, build_from_parts
@@ -273,7 +273,8 @@ def _mixture_associate(P, Q, pairs, sigma, cov_p, cov_q, hulls):
     """
     al = align_pairs(P[pairs[:, 0]], Q[pairs[:, 1]], sigma)
     s, hull = pair_noise(sigma, cov_p, cov_q), hulls[0]
-    theta, t = em_refine(P, Q, al.theta, al.t, s, bump_height(len(P), hull.volume, s, SHARED_PRIOR), hull)
+    theta, t = Mixture.of_map(P, s, bump_height(len(P), hull.volume, s, SHARED_PRIOR), SHARED_PRIOR, hull).em(
+        Q, al.theta, al.t)
     return associate(P, Q, dataclasses.replace(al, theta=theta, t=t), sigma, cov_p, cov_q, hulls)
 
 

@@ -37,12 +37,14 @@ The statistic is then compared with a threshold measured on unrelated pairs
 from __future__ import annotations
 
 import functools
+from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import ConvexHull, cKDTree
+from scipy.spatial import ConvexHull
 
 from ._validation import check_points, check_sigma
 from .alignment import rotate
+from .neighbours import CellGrid, cell_grid, cell_span, count_within, njit
 
 #: Translation cells, in units of s.
 GRID_STEP = 0.5
@@ -66,9 +68,6 @@ CHERNOFF_POINTS = 40
 #: 17.5 dB, 2,077 and 6.9e9 at 30 dB.
 MAX_GRID_SIDE = 2560
 MAX_GRID_CELLS = 2**33
-#: Points in a leaf of a scipy k-d tree (``cKDTree``'s default ``leafsize``): ``_near_d2`` compares
-#: sets no larger than this directly.
-KDTREE_LEAF = 16
 
 
 def inside_hull(hull: ConvexHull, x: np.ndarray) -> np.ndarray:
@@ -133,88 +132,114 @@ def max_log_lr(P, Q, sigma: float, p_shared: float, density: float):
                          f"{n_theta:.3g} rotations; at most {MAX_GRID_SIDE} cells per axis and "
                          f"{MAX_GRID_CELLS:.3g} in all are searched (are sigma and both maps in the same units?)")
     c = bump_height(density, 1.0, s, p_shared)
-    hull, tree_p = ConvexHull(P), cKDTree(P)
-    theta, t = _grid_peaks(P, Q, s, c, p_shared, hull, tree_p)
+    model = Mixture.of_map(P, s, c, p_shared)
+    theta, t = _grid_peaks(Q, model)
     best = (-np.inf, 0.0, np.zeros(2))
     for th, tt in zip(theta, t):
-        th, tt = em_refine(P, Q, th, tt, s, c, hull, tree_p)
-        value = exact_log_lr(P, Q, th, tt, s, c, p_shared, hull, tree_p)
+        th, tt = model.em(Q, th, tt)
+        value = model.log_lr(Q, th, tt)[0]
         if value > best[0]:
             best = (value, th, tt)
     return best
 
 
-def exact_log_lr(P, Q, theta, t, s, c, p_shared, hull, tree_p=None) -> float:
-    """Λ at one transform (module docstring), with p's landmarks within ``EXACT_RADIUS`` s
-    (``tree_p``: P's k-d tree, if built)."""
-    x = rotate(-theta, Q - t)
-    x = x[inside_hull(hull, x)]
-    if not len(x):
-        return 0.0
-    d2 = _near_d2(P, x, EXACT_RADIUS * s, tree_p)
-    mix = np.bincount(d2[0], np.exp(-d2[1] / (2 * s**2)), len(x))
-    return float(len(x) * np.log(1 - p_shared) + np.sum(np.log1p(c * mix)))
+@dataclass(frozen=True)
+class Mixture:
+    """The mixture model of map p (module docstring) at pair noise s, bump height c and prior π.
 
-
-def null_log_tail(log_lr, n_inside, P, hull, s, c, p_shared, tree_p=None) -> np.ndarray:
-    """Upper bounds on log P(Λ >= log_lr) at one fixed transform when the maps are unrelated.
-
-    Under "unrelated", the ``n_inside`` mapped q landmarks are independent
-    and uniform over p's hull, so Λ is a sum of independent terms
-    ``log(1 - π) + g(x)``, ``g(x) = log(1 + c Σ_i exp(-|x - p_i|² / 2s²))``,
-    and Chernoff's bound ``P(Σ g >= L') <= exp(n K(λ) - λ L')`` holds for
-    every λ > 0, with ``K(λ) = log E[exp(λ g(x))]`` over x uniform in the hull.
-    g vanishes beyond a few s of every p landmark, so the expectation is
-    ``1 + (1/A) ∫ (e^{λ g} - 1)``, integrated on a polar grid of
-    ``QUAD_RADIAL x QUAD_ANGLES`` nodes in the disc of radius
-    ``EXACT_RADIUS`` s around each p landmark (a node's weight shared among
-    the discs covering it; nodes outside the hull dropped). Quadrature, not
-    sampling: no randomness, and no peak is missed however small s is.
-
-    Parameters
+    Attributes
     ----------
-    log_lr, n_inside : (H,) array_like
-        Λ of H transforms and the number of mapped q landmarks inside p's hull at each.
     P : (n_p, 2) ndarray
     hull : scipy.spatial.ConvexHull
-        p's hull.
+        P's convex hull.
     s, c, p_shared : float
-        The mixture's pair noise, bump height and prior π (module docstring).
-    tree_p : scipy.spatial.cKDTree, optional
-        P's k-d tree, if built.
-
-    Returns
-    -------
-    (H,) ndarray
-        The bounds (<= 0).
+    grid : neighbours.CellGrid
+        P on cells ``EXACT_RADIUS`` s wide: every pair the model weighs.
     """
-    radial, w_r = _gauss_legendre(QUAD_RADIAL)
-    rho = EXACT_RADIUS * s * (radial + 1) / 2
-    phi = 2 * np.pi * np.arange(QUAD_ANGLES) / QUAD_ANGLES
-    offsets = (rho[:, None, None] * np.stack([np.cos(phi), np.sin(phi)], -1)[None]).reshape(-1, 2)
-    # ∫ f r dr dφ: Gauss-Legendre in r on [0, R] (Jacobian R/2), the trapezoid rule in φ.
-    area = np.repeat(w_r * rho * EXACT_RADIUS * s / 2, QUAD_ANGLES) * 2 * np.pi / QUAD_ANGLES
-    centres = P[::max(1, len(P) // QUAD_MAX_CENTRES)]
-    x = (centres[:, None, :] + offsets[None]).reshape(-1, 2)
-    weight = np.tile(area, len(centres)) * len(P) / len(centres)
-    keep = inside_hull(hull, x)
-    x, weight = x[keep], weight[keep]
-    tree_p = cKDTree(P) if tree_p is None else tree_p
-    j, d2, _ = _near_d2(P, x, EXACT_RADIUS * s, tree_p)
-    g = np.log1p(c * np.bincount(j, np.exp(-d2 / (2 * s**2)), len(x)))
-    # A node lies in the discs of `cover` landmarks: its weight is shared among them (a partition of
-    # unity over every landmark's disc, so a subsample of centres, scaled up, is unbiased).
-    cover = tree_p.query_ball_point(x, EXACT_RADIUS * s * (1 + 1e-9), return_length=True)
-    weight = weight / (cover * hull.volume)
-    # Any λ gives a bound: a coarse grid only loosens the best one slightly.
-    lam = np.geomspace(0.02, 20.0, CHERNOFF_POINTS)
-    # log E[e^{λ g}] = log((1 - Σw) + Σ w e^{λ g}), summed from its largest term: e^{λ g} overflows at high SNR.
-    top = lam * g.max(initial=0.0)
-    log_mgf = top + np.log(np.exp(lam[:, None] * g - top[:, None]) @ weight
-                           + max(0.0, 1.0 - weight.sum()) * np.exp(-top))
-    excess = np.asarray(log_lr, float) - np.asarray(n_inside, float) * np.log(1 - p_shared)
-    bound = np.asarray(n_inside, float)[:, None] * log_mgf - lam * excess[:, None]
-    return np.minimum(0.0, bound.min(axis=1))
+
+    P: np.ndarray
+    hull: ConvexHull
+    s: float
+    c: float
+    p_shared: float
+    grid: CellGrid
+
+    @classmethod
+    def of_map(cls, P, s: float, c: float, p_shared: float, hull: ConvexHull | None = None) -> "Mixture":
+        """The model of map P (valid input); ``hull``: P's convex hull, when the caller has it."""
+        hull = ConvexHull(P) if hull is None else hull
+        # Cells a hair wider than the radius: the quadrature's cover count reaches just beyond it.
+        return cls(P, hull, float(s), float(c), float(p_shared), cell_grid(P, EXACT_RADIUS * s * (1 + 1e-9)))
+
+    def log_lr(self, Q, theta: float, t) -> tuple[float, int]:
+        """Λ at one transform, with p's landmarks within ``EXACT_RADIUS`` s, and the number of
+        mapped q landmarks inside p's hull."""
+        g, n_inside = _mapped_log_terms(Q, float(theta), float(t[0]), float(t[1]), self.hull.equations,
+                                        self.s, self.c, EXACT_RADIUS * self.s, *self.grid.arrays())
+        return float(n_inside * np.log(1 - self.p_shared) + g), int(n_inside)
+
+    def em(self, Q, theta: float, t) -> tuple[float, np.ndarray]:
+        """EM from (θ, t): responsibilities of each (i, j), then the weighted closed-form fit.
+
+        Returns the refined ``(theta, t)`` after ``EM_ROUNDS`` rounds (fewer when
+        under two pairs lie within ``EXACT_RADIUS`` s, or once a round returns
+        its input exactly: every further round would too).
+        """
+        theta, tx, ty = _em_rounds(Q, float(theta), float(t[0]), float(t[1]), self.hull.equations, self.s, self.c,
+                                   EXACT_RADIUS * self.s, EM_ROUNDS, *self.grid.arrays())
+        return theta, np.array([tx, ty])
+
+    def null_log_tail(self, log_lr, n_inside) -> np.ndarray:
+        """Upper bounds on log P(Λ >= log_lr) at one fixed transform when the maps are unrelated.
+
+        Under "unrelated", the ``n_inside`` mapped q landmarks are independent
+        and uniform over p's hull, so Λ is a sum of independent terms
+        ``log(1 - π) + g(x)``, ``g(x) = log(1 + c Σ_i exp(-|x - p_i|² / 2s²))``,
+        and Chernoff's bound ``P(Σ g >= L') <= exp(n K(λ) - λ L')`` holds for
+        every λ > 0, with ``K(λ) = log E[exp(λ g(x))]`` over x uniform in the hull.
+        g vanishes beyond a few s of every p landmark, so the expectation is
+        ``1 + (1/A) ∫ (e^{λ g} - 1)``, integrated on a polar grid of
+        ``QUAD_RADIAL x QUAD_ANGLES`` nodes in the disc of radius
+        ``EXACT_RADIUS`` s around each p landmark (a node's weight shared among
+        the discs covering it; nodes outside the hull dropped). Quadrature, not
+        sampling: no randomness, and no peak is missed however small s is.
+
+        Parameters
+        ----------
+        log_lr, n_inside : (H,) array_like
+            Λ of H transforms and the number of mapped q landmarks inside p's hull at each.
+
+        Returns
+        -------
+        (H,) ndarray
+            The bounds (<= 0).
+        """
+        P, s, hull, radius = self.P, self.s, self.hull, EXACT_RADIUS * self.s
+        radial, w_r = _gauss_legendre(QUAD_RADIAL)
+        rho = radius * (radial + 1) / 2
+        phi = 2 * np.pi * np.arange(QUAD_ANGLES) / QUAD_ANGLES
+        offsets = (rho[:, None, None] * np.stack([np.cos(phi), np.sin(phi)], -1)[None]).reshape(-1, 2)
+        # ∫ f r dr dφ: Gauss-Legendre in r on [0, R] (Jacobian R/2), the trapezoid rule in φ.
+        area = np.repeat(w_r * rho * radius / 2, QUAD_ANGLES) * 2 * np.pi / QUAD_ANGLES
+        centres = P[::max(1, len(P) // QUAD_MAX_CENTRES)]
+        x = (centres[:, None, :] + offsets[None]).reshape(-1, 2)
+        weight = np.tile(area, len(centres)) * len(P) / len(centres)
+        keep = inside_hull(hull, x)
+        x, weight = x[keep], weight[keep]
+        g = np.log1p(self.c * bump_sums(x, s, radius, *self.grid.arrays()))
+        # A node lies in the discs of `cover` landmarks: its weight is shared among them (a partition of
+        # unity over every landmark's disc, so a subsample of centres, scaled up, is unbiased).
+        cover = count_within(x, *self.grid.arrays(), radius * (1 + 1e-9))
+        weight = weight / (cover * hull.volume)
+        # Any λ gives a bound: a coarse grid only loosens the best one slightly.
+        lam = np.geomspace(0.02, 20.0, CHERNOFF_POINTS)
+        # log E[e^{λ g}] = log((1 - Σw) + Σ w e^{λ g}), summed from its largest term: e^{λ g} overflows at high SNR.
+        top = lam * g.max(initial=0.0)
+        log_mgf = top + np.log(np.exp(lam[:, None] * g - top[:, None]) @ weight
+                               + max(0.0, 1.0 - weight.sum()) * np.exp(-top))
+        excess = np.asarray(log_lr, float) - np.asarray(n_inside, float) * np.log(1 - self.p_shared)
+        bound = np.asarray(n_inside, float)[:, None] * log_mgf - lam * excess[:, None]
+        return np.minimum(0.0, bound.min(axis=1))
 
 
 @functools.cache
@@ -223,53 +248,104 @@ def _gauss_legendre(n: int) -> tuple[np.ndarray, np.ndarray]:
     return np.polynomial.legendre.leggauss(n)
 
 
-def _near_d2(P, x, radius, tree_p=None):
-    """(j, d², i) of every p landmark within ``radius`` of each x_j (``tree_p``: P's tree, if built).
-
-    The pairs come in the order of scipy's k-d tree pair search, and d² is its distance squared
-    (the order and bits of every sum over them). When both point sets fit in one leaf, that search
-    compares every point of x with every point of P, row by row: it is written out as such, the
-    same pairs, order and bits without building the trees.
-    """
-    if len(x) <= KDTREE_LEAF and len(P) <= KDTREE_LEAF:
-        dx, dy = x[:, None, 0] - P[:, 0], x[:, None, 1] - P[:, 1]
-        d2 = dx * dx + dy * dy
-        j, i = np.nonzero(d2 <= radius * radius)
-        return j, np.sqrt(d2[j, i]) ** 2, i
-    pairs = cKDTree(x).sparse_distance_matrix(cKDTree(P) if tree_p is None else tree_p, radius,
-                                              output_type="ndarray")
-    return pairs["i"], pairs["v"] ** 2, pairs["j"]
+@njit(cache=True)
+def _inside(x, y, equations):
+    """Whether (x, y) lies inside a 2-D hull given by its facet equations (boundary included)."""
+    for f in range(equations.shape[0]):
+        if equations[f, 0] * x + equations[f, 1] * y + equations[f, 2] > 0:
+            return False
+    return True
 
 
-def em_refine(P, Q, theta, t, s, c, hull, tree_p=None):
-    """EM on the mixture from (θ, t): responsibilities of each (i, j), then the weighted closed-form fit.
+@njit(cache=True)
+def _mapped_inside(Q, theta, tx, ty, equations):
+    """q's landmarks brought into p's frame, ``R(θ)ᵀ (q_j - t)``, that fall inside p's hull, and their j."""
+    c, s = np.cos(theta), np.sin(theta)
+    x = np.empty((Q.shape[0], 2))
+    j = np.empty(Q.shape[0], dtype=np.int64)
+    m = 0
+    for k in range(Q.shape[0]):
+        dx, dy = Q[k, 0] - tx, Q[k, 1] - ty
+        u, v = c * dx + s * dy, c * dy - s * dx
+        if _inside(u, v, equations):
+            x[m, 0], x[m, 1], j[m] = u, v, k
+            m += 1
+    return x[:m], j[:m]
 
-    Returns the refined ``(theta, t)`` after ``EM_ROUNDS`` rounds (fewer when
-    under two pairs lie within ``EXACT_RADIUS`` s, or once a round returns
-    its input exactly: every further round would too). ``tree_p``: P's k-d
-    tree, if built.
-    """
-    tree_p = cKDTree(P) if tree_p is None else tree_p
-    for _ in range(EM_ROUNDS):
-        x = rotate(-theta, Q - t)
-        inside = np.flatnonzero(inside_hull(hull, x))
-        j, d2, i = _near_d2(P, x[inside], EXACT_RADIUS * s, tree_p)
-        if len(j) < 2:
+
+@njit(cache=True)
+def bump_sums(x, s, radius, points, index, keys, ox, oy, h, nx, ny):
+    """Σ_i exp(-|x_j - p_i|² / 2s²) over the grid's points within ``radius`` of each x_j."""
+    out = np.zeros(x.shape[0])
+    r2, two_s2 = radius * radius, 2 * s * s
+    for j in range(x.shape[0]):
+        for a in range(-1, 2):
+            for b in range(-1, 2):
+                lo, hi = cell_span(x[j, 0], x[j, 1], keys, ox, oy, h, nx, ny, a, b)
+                for k in range(lo, hi):
+                    dx, dy = x[j, 0] - points[k, 0], x[j, 1] - points[k, 1]
+                    d2 = dx * dx + dy * dy
+                    if d2 <= r2:
+                        out[j] += np.exp(-d2 / two_s2)
+    return out
+
+
+@njit(cache=True)
+def _mapped_log_terms(Q, theta, tx, ty, equations, s, c, radius, points, index, keys, ox, oy, h, nx, ny):
+    """Σ_j log(1 + c Σ_i N_ij) over the mapped q landmarks inside p's hull, and their number."""
+    x, _ = _mapped_inside(Q, theta, tx, ty, equations)
+    mix = bump_sums(x, s, radius, points, index, keys, ox, oy, h, nx, ny)
+    return np.sum(np.log1p(c * mix)), x.shape[0]
+
+
+@njit(cache=True)
+def _em_rounds(Q, theta, tx, ty, equations, s, c, radius, rounds, points, index, keys, ox, oy, h, nx, ny):
+    """``Mixture.em``'s rounds: each pair (i, j) within ``radius`` weighs w_ij = c N_ij / (1 + c Σ_i N_ij)
+    in the weighted closed-form fit of p_i onto q_j."""
+    r2, two_s2 = radius * radius, 2 * s * s
+    for _ in range(rounds):
+        x, js = _mapped_inside(Q, theta, tx, ty, equations)
+        norm = 1 + c * bump_sums(x, s, radius, points, index, keys, ox, oy, h, nx, ny)
+        # Two passes over the pairs: the weighted means, then the centred cross and dot sums.
+        total, n_pairs, ma0, ma1, mb0, mb1 = 0.0, 0, 0.0, 0.0, 0.0, 0.0
+        for u in range(x.shape[0]):
+            q0, q1 = Q[js[u], 0], Q[js[u], 1]
+            for a in range(-1, 2):
+                for b in range(-1, 2):
+                    lo, hi = cell_span(x[u, 0], x[u, 1], keys, ox, oy, h, nx, ny, a, b)
+                    for k in range(lo, hi):
+                        dx, dy = x[u, 0] - points[k, 0], x[u, 1] - points[k, 1]
+                        d2 = dx * dx + dy * dy
+                        if d2 <= r2:
+                            w = c * np.exp(-d2 / two_s2) / norm[u]
+                            total += w
+                            n_pairs += 1
+                            ma0, ma1 = ma0 + w * points[k, 0], ma1 + w * points[k, 1]
+                            mb0, mb1 = mb0 + w * q0, mb1 + w * q1
+        if n_pairs < 2:
             break
-        bump = c * np.exp(-d2 / (2 * s**2))
-        w = bump / (1 + np.bincount(j, bump, len(inside))[j])
-        a, b = P[i], Q[inside[j]]
-        # np.average's arithmetic (the same bits) without its argument checks, which cost more than the sums.
-        total = w.sum()
-        wa, wb = (a * w[:, None]).sum(axis=0) / total, (b * w[:, None]).sum(axis=0) / total
-        a, b = a - wa, b - wb
-        new = float(np.arctan2((w * (a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])).sum(),
-                               (w * (a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1])).sum()))
-        new_t = wb - rotate(new, wa[None])[0]
-        if new == theta and np.array_equal(new_t, t):
+        ma0, ma1, mb0, mb1 = ma0 / total, ma1 / total, mb0 / total, mb1 / total
+        cross, dot = 0.0, 0.0
+        for u in range(x.shape[0]):
+            q0, q1 = Q[js[u], 0] - mb0, Q[js[u], 1] - mb1
+            for a in range(-1, 2):
+                for b in range(-1, 2):
+                    lo, hi = cell_span(x[u, 0], x[u, 1], keys, ox, oy, h, nx, ny, a, b)
+                    for k in range(lo, hi):
+                        dx, dy = x[u, 0] - points[k, 0], x[u, 1] - points[k, 1]
+                        d2 = dx * dx + dy * dy
+                        if d2 <= r2:
+                            w = c * np.exp(-d2 / two_s2) / norm[u]
+                            p0, p1 = points[k, 0] - ma0, points[k, 1] - ma1
+                            cross += w * (p0 * q1 - p1 * q0)
+                            dot += w * (p0 * q0 + p1 * q1)
+        new = np.arctan2(cross, dot)
+        cn, sn = np.cos(new), np.sin(new)
+        new_tx, new_ty = mb0 - (cn * ma0 - sn * ma1), mb1 - (sn * ma0 + cn * ma1)
+        if new == theta and new_tx == tx and new_ty == ty:
             break
-        theta, t = new, new_t
-    return theta, t
+        theta, tx, ty = new, new_tx, new_ty
+    return theta, tx, ty
 
 
 def _grid_shape(P, Q, s) -> tuple[float, float]:
@@ -280,7 +356,7 @@ def _grid_shape(P, Q, s) -> tuple[float, float]:
     return float(np.ceil(2 * np.pi * reach / s)), float(2 * (np.ceil(reach_q / h) + np.ceil(reach / h)) + 1)
 
 
-def _grid_peaks(P, Q, s, c, p_shared, hull, tree_p):
+def _grid_peaks(Q, model: Mixture):
     """The ``GRID_PEAKS`` best (θ, t) of the grid, at distinct rotations.
 
     Per rotation, the pair translations are counted on cells ``GRID_STEP·s``
@@ -292,6 +368,7 @@ def _grid_peaks(P, Q, s, c, p_shared, hull, tree_p):
     # ``import mapmerge`` would pay for this one function.
     from scipy.signal import fftconvolve
 
+    P, s, c, p_shared = model.P, model.s, model.c, model.p_shared
     pm, qm = P.mean(axis=0), Q.mean(axis=0)
     pc, qc = P - pm, Q - qm
     reach = np.sqrt(np.max(np.sum(pc**2, axis=1)))
@@ -324,6 +401,6 @@ def _grid_peaks(P, Q, s, c, p_shared, hull, tree_p):
         best_cell[k] = np.divmod(int(np.argmax(value)), side)
     # Back to the maps' own frames: q = R p + t with t = qm + t_centred - R pm.
     ts = qm + (best_cell - M) * h - rotate(thetas, pm[None])[:, 0]
-    exact = np.array([exact_log_lr(P, Q, th, t, s, c, p_shared, hull, tree_p) for th, t in zip(thetas, ts)])
+    exact = np.array([model.log_lr(Q, th, t)[0] for th, t in zip(thetas, ts)])
     order = np.argsort(-exact, kind="stable")[:GRID_PEAKS]
     return thetas[order], ts[order]

@@ -46,8 +46,8 @@ the test uses every landmark (its quadrature on at most
 
 The vote grid spans both maps' reach, so maps of very different extents
 (one in millimetres, the other in metres) would need a grid of any size:
-it has at most ``MAX_VOTE_CELLS`` cells per axis (wider cells beyond) and
-is counted ``VOTE_BUDGET`` cells at a time, so the search's memory and time
+it has at most ``MAX_VOTE_CELLS`` cells per axis (wider cells beyond), and
+only the cells holding votes are scored, so the search's memory and time
 depend on the landmark counts alone, never on the coordinates.
 """
 
@@ -61,7 +61,8 @@ from scipy.spatial import ConvexHull, cKDTree
 
 from .alignment import Alignment, fit_transforms, rotate, rotation
 from .association import associate, declared_triangles
-from .exhaustive import bump_height, em_refine, exact_log_lr, inside_hull, null_log_tail, pair_noise
+from .exhaustive import Mixture, bump_height, pair_noise
+from .neighbours import cell_grid, nearest_within, njit
 from .result import MergeBatch, build_from_parts
 from .triangles import PARALLEL_MIN_LANDMARKS, TriangleBatch
 
@@ -102,9 +103,6 @@ MAX_ROTATIONS = 1440
 #: beyond this the cells are widened instead (cost then depends on the landmark counts alone). Same-unit
 #: maps of similar extent need a few hundred (about 160 for two 300-landmark maps of one area).
 MAX_VOTE_CELLS = 2048
-#: Vote cells (rotations x cells per rotation) counted at once: bounds the vote's memory (8 bytes a cell,
-#: a few arrays of it) whatever the grid.
-VOTE_BUDGET = 2**23
 
 
 def _thinned(X: np.ndarray, m: int) -> np.ndarray:
@@ -148,31 +146,9 @@ def _hypotheses(Ps: np.ndarray, Qs: np.ndarray, r: float, hull):
     n_theta = int(np.clip(np.ceil(2 * np.pi * reach / cell), 8, MAX_ROTATIONS))
     thetas = 2 * np.pi * np.arange(n_theta) / n_theta
     n_cells = int(np.ceil(2 * half / cell)) + 1
-    best_count = np.zeros(n_theta, dtype=np.int64)
-    best_t = np.zeros((n_theta, 2))
-    # Rotations per chunk: about 4·10⁶ votes, and at most VOTE_BUDGET grid cells (every rotation is voted
-    # on its own, so the chunking changes no result).
-    chunk = max(1, min(4_000_000 // (len(pc) * len(qc)), VOTE_BUDGET // n_cells**2))
-    for a in range(0, n_theta, chunk):
-        th = thetas[a:a + chunk]
-        c, s = np.cos(th), np.sin(th)
-        rx = c[:, None] * pc[None, :, 0] - s[:, None] * pc[None, :, 1]
-        ry = s[:, None] * pc[None, :, 0] + c[:, None] * pc[None, :, 1]
-        # Cell indices are whole numbers held exactly in float64, so the key is
-        # formed in place there and converted once (the vote's memory traffic is its cost).
-        key = _cell_index(qc[None, None, :, 0] - rx[:, :, None], half, cell)
-        key *= n_cells
-        key += _cell_index(qc[None, None, :, 1] - ry[:, :, None], half, cell)
-        key += (np.arange(len(th)) * n_cells**2)[:, None, None]
-        grid = np.bincount(key.astype(np.int64).ravel(), minlength=len(th) * n_cells**2)
-        grid = grid.reshape(len(th), n_cells, n_cells)
-        # 2 x 2 windows: a true pile-up split by a cell boundary is counted whole.
-        window = grid[:, :-1, :-1] + grid[:, 1:, :-1] + grid[:, :-1, 1:] + grid[:, 1:, 1:]
-        flat = window.reshape(len(th), -1)
-        arg = flat.argmax(axis=1)
-        best_count[a:a + chunk] = flat[np.arange(len(th)), arg]
-        wx, wy = np.divmod(arg, n_cells - 1)
-        best_t[a:a + chunk] = np.stack([(wx + 1) * cell - half, (wy + 1) * cell - half], axis=1)
+    best_count, best_window = _vote_peaks(pc, qc, thetas, half, cell, n_cells)
+    wx, wy = np.divmod(best_window, n_cells - 1)
+    best_t = np.stack([(wx + 1) * cell - half, (wy + 1) * cell - half], axis=1)
     order = np.argsort(-best_count, kind="stable")[:N_PEAKS]
     theta = thetas[order]
     # Back to the maps' own frames: q = R p + t with t = qc_mean + t_centred - R pc_mean.
@@ -183,36 +159,56 @@ def _hypotheses(Ps: np.ndarray, Qs: np.ndarray, r: float, hull):
     return theta, t, cell, float(n_hypotheses)
 
 
-def _cell_index(x: np.ndarray, half: float, cell: float) -> np.ndarray:
-    """floor((x + half) / cell), in place in x."""
-    x += half
-    x /= cell
-    return np.floor(x, out=x)
+@njit(cache=True)
+def _vote_peaks(pc, qc, thetas, half, cell, n_cells):
+    """Per rotation, the fullest 2 x 2 window of translation votes ``q_j - R(θ) p_i`` on cells ``cell`` wide
+    (cell ``floor((t + half) / cell)``): its count and its index ``wx (n_cells - 1) + wy``, the first of ties.
+
+    A 2 x 2 window catches a true pile-up split by a cell boundary whole. Only the windows holding a vote
+    are scored, and the grid is cleared vote by vote, so a rotation costs O(n_p n_q) whatever the grid's size.
+    """
+    n_p, n_q = pc.shape[0], qc.shape[0]
+    grid = np.zeros((n_cells, n_cells), dtype=np.int64)
+    kx, ky = np.empty(n_p * n_q, dtype=np.int64), np.empty(n_p * n_q, dtype=np.int64)
+    count, window = np.zeros(len(thetas), dtype=np.int64), np.zeros(len(thetas), dtype=np.int64)
+    for a in range(len(thetas)):
+        c, s = np.cos(thetas[a]), np.sin(thetas[a])
+        m = 0
+        for i in range(n_p):
+            rx, ry = c * pc[i, 0] - s * pc[i, 1], s * pc[i, 0] + c * pc[i, 1]
+            for j in range(n_q):
+                kx[m] = np.int64(np.floor((qc[j, 0] - rx + half) / cell))
+                ky[m] = np.int64(np.floor((qc[j, 1] - ry + half) / cell))
+                grid[kx[m], ky[m]] += 1
+                m += 1
+        best, arg = -1, 0
+        for m in range(n_p * n_q):
+            for wx in range(max(kx[m] - 1, 0), min(kx[m], n_cells - 2) + 1):
+                for wy in range(max(ky[m] - 1, 0), min(ky[m], n_cells - 2) + 1):
+                    v = grid[wx, wy] + grid[wx + 1, wy] + grid[wx, wy + 1] + grid[wx + 1, wy + 1]
+                    f = wx * (n_cells - 1) + wy
+                    if v > best or (v == best and f < arg):
+                        best, arg = v, f
+        for m in range(n_p * n_q):
+            grid[kx[m], ky[m]] = 0
+        count[a], window[a] = best, arg
+    return count, window
 
 
-def _refine(P, Q, thetas, ts, r, cell, sigma, tree=None):
+def _refine(P, Q, thetas, ts, r, cell, sigma):
     """Each hypothesis refined: nearest-neighbour pairs, refitted, the radius halved each round from the
     coarse cell's to 2r; every hypothesis at once (one ragged fit per round).
 
-    The nearest neighbours come from ``tree`` (P's kd-tree, for large maps)
-    or, without one, from all distances, which give the kd-tree's to the bit
-    (√(dx² + dy²) within a strict upper bound): both find the same pairs, in
-    the same order, so the same fits.
-
     Returns one alignment, or None, per hypothesis.
     """
-    live, theta, t = np.arange(len(thetas)), [float(v) for v in thetas], list(ts)
+    grid = cell_grid(P, max(2 * r, 2 * cell))
+    live, theta, t = np.arange(len(thetas)), np.asarray(thetas, float), np.asarray(ts, float).reshape(-1, 2)
     for k in range(REFINE_ROUNDS):
         bound = max(2 * r, 2 * cell / 2**k)
-        x = np.stack([(Q - t[h]) @ rotation(theta[h]) for h in range(len(live))])
-        if tree is None:
-            d = np.sqrt((x[:, :, None, 0] - P[:, 0]) ** 2 + (x[:, :, None, 1] - P[:, 1]) ** 2)
-            i = d.argmin(axis=2)
-            dist = np.take_along_axis(d, i[..., None], axis=2)[..., 0]
-        else:
-            dist, i = map(np.stack, zip(*(tree.query(y, distance_upper_bound=bound) for y in x)))
-        h, j = np.nonzero(dist < bound)
-        i, dist = i[h, j], dist[h, j]
+        x = rotate(-theta, Q[None] - t[:, None, :]).reshape(-1, 2)
+        i, dist = nearest_within(x, *grid.arrays(), bound)
+        h, j = np.divmod(np.flatnonzero(i >= 0), len(Q))
+        i, dist = i[i >= 0], dist[i >= 0]
         # One-to-one, per hypothesis: each p landmark keeps its nearest q landmark.
         key = h * len(P) + i
         order = np.lexsort((dist, key))
@@ -225,32 +221,29 @@ def _refine(P, Q, thetas, ts, r, cell, sigma, tree=None):
         live = live[fitted]
         if not live.size:
             return [None] * len(thetas)
-        th, tt, cost = fit_transforms(h, P[i], Q[j], len(live))
-        theta, t = [float(v) for v in th], list(tt)
+        theta, t, cost = fit_transforms(h, P[i], Q[j], len(live))
     out = [None] * len(thetas)
     for k, hyp in enumerate(live):
         sel = h == k
-        out[hyp] = Alignment.from_fit(theta[k], t[k], cost[k], P[i[sel]], Q[j[sel]], sigma)
+        out[hyp] = Alignment.from_fit(float(theta[k]), t[k], cost[k], P[i[sel]], Q[j[sel]], sigma)
     return out
 
 
-def _log_nfa(P, Q, hypotheses, s: float, n_hypotheses: float, hull, tree_p):
+def _log_nfa(Q, hypotheses, model: Mixture, n_hypotheses: float):
     """log NFA of each hypothesis after EM, the a contrario mixture test (module docstring, step 4),
-    and the hypotheses moved to the EM's transforms (``hull``, ``tree_p``: p's convex hull and k-d tree)."""
-    c = bump_height(len(P), hull.volume, s, MIXTURE_PRIOR)
+    and the hypotheses moved to the EM's transforms."""
     log_lr, n_inside, fitted, done = [], [], [], {}
     for al in hypotheses:
         # Hypotheses often refine to the very same transform, which EM would only repeat.
         start = np.float64(al.theta).tobytes() + np.asarray(al.t, float).tobytes()
         if start not in done:
-            theta, t = em_refine(P, Q, al.theta, al.t, s, c, hull, tree_p)
-            done[start] = (theta, t, exact_log_lr(P, Q, theta, t, s, c, MIXTURE_PRIOR, hull, tree_p),
-                           int(np.sum(inside_hull(hull, rotate(-theta, Q - t)))))
+            theta, t = model.em(Q, al.theta, al.t)
+            done[start] = (theta, t, *model.log_lr(Q, theta, t))
         theta, t, lr, n_in = done[start]
         fitted.append(dataclasses.replace(al, theta=theta, t=t))
         log_lr.append(lr)
         n_inside.append(n_in)
-    return np.log(n_hypotheses) + null_log_tail(log_lr, n_inside, P, hull, s, c, MIXTURE_PRIOR, tree_p), fitted
+    return np.log(n_hypotheses) + model.null_log_tail(log_lr, n_inside), fitted
 
 
 def search_pairs(P, Q, sigma: float, cov_p=None, cov_q=None):
@@ -280,14 +273,14 @@ def search_pairs(P, Q, sigma: float, cov_p=None, cov_q=None):
     Ps, Qs = _thinned(P, MAX_SEARCH_LANDMARKS), _thinned(Q, MAX_SEARCH_LANDMARKS)
     thetas, ts, cell, n_hyp = _hypotheses(Ps, Qs, r, hull if Ps is P else ConvexHull(Ps))
     refined = [al for al in _refine(Ps, Qs, thetas, ts, r, cell, sigma) if al is not None]
-    tree_p = cKDTree(P)
     if refined and (len(Ps) < len(P) or len(Qs) < len(Q)):
         # Refined on the sparse subsets first (their spacing tolerates the coarse cell's error), then on the maps.
-        refined = [al for al in _refine(P, Q, [al.theta for al in refined], [al.t for al in refined], r, r, sigma,
-                                        tree_p) if al is not None]
+        refined = [al for al in _refine(P, Q, [al.theta for al in refined], [al.t for al in refined], r, r, sigma)
+                   if al is not None]
     if not refined:
         return *empty, np.inf
-    log_nfa, refined = _log_nfa(P, Q, refined, r, n_hyp, hull, tree_p)
+    model = Mixture.of_map(P, r, bump_height(len(P), hull.volume, r, MIXTURE_PRIOR), MIXTURE_PRIOR, hull)
+    log_nfa, refined = _log_nfa(Q, refined, model, n_hyp)
     best = int(np.argmin(log_nfa))
     nfa = float(np.exp(min(log_nfa[best], 700.0)))
     if log_nfa[best] > np.log(SEARCH_NFA):

@@ -19,8 +19,7 @@ def test_detector_finds_the_transform_and_separates_related_from_unrelated():
     # The maximum is at least Λ at the true transform (the grid and EM find the peak).
     s = np.sqrt(2) * related.sigma
     c = exhaustive.bump_height(related.density, 1.0, s, 0.9)
-    at_truth = exhaustive.exact_log_lr(related.p, related.q, related.theta, related.t, s, c, 0.9,
-                                       ConvexHull(related.p))
+    at_truth, _ = exhaustive.Mixture.of_map(related.p, s, c, 0.9).log_lr(related.q, related.theta, related.t)
     assert value >= at_truth - 1e-9
     null, _, _ = exhaustive.max_log_lr(unrelated.p, unrelated.q, unrelated.sigma, 0.9, unrelated.density)
     assert value > null + 10
@@ -47,17 +46,17 @@ def test_null_log_tail_bounds_the_tail_of_unrelated_maps_and_is_not_vacuous(snr)
     sc = mm.simulate.make_pair(100, 0.75, snr, rng=7)
     hull = ConvexHull(sc.p)
     s = np.sqrt(2) * sc.sigma
-    c = exhaustive.bump_height(sc.density, 1.0, s, 0.5)
+    model = exhaustive.Mixture.of_map(sc.p, s, exhaustive.bump_height(sc.density, 1.0, s, 0.5), 0.5)
     rng = np.random.default_rng(1)
     lo, hi = sc.p.min(axis=0), sc.p.max(axis=0)
     values = []
     for _ in range(2000):
         x = rng.uniform(lo, hi, (400, 2))
         x = x[mm.exhaustive.inside_hull(hull, x)][:60]
-        values.append(exhaustive.exact_log_lr(sc.p, x, 0.0, np.zeros(2), s, c, 0.5, hull))
+        values.append(model.log_lr(x, 0.0, np.zeros(2))[0])
     for q in (0.9, 0.99):
         level = np.quantile(values, q)
-        bound = exhaustive.null_log_tail([level], [60], sc.p, hull, s, c, 0.5)[0]
+        bound = model.null_log_tail([level], [60])[0]
         # An upper bound on the tail probability, and within a factor e^3 of it.
         assert np.log(1 - q) - 0.1 <= bound <= np.log(1 - q) + 3.0
 
@@ -65,13 +64,12 @@ def test_null_log_tail_bounds_the_tail_of_unrelated_maps_and_is_not_vacuous(snr)
 def test_null_log_tail_on_a_subsample_of_landmark_discs_matches_every_disc(monkeypatch):
     # 1,200 landmarks: the quadrature uses every third disc, scaled up; every disc gives the reference.
     sc = mm.simulate.make_pair(1200, 0.75, 15.0, rng=2)
-    hull = ConvexHull(sc.p)
     s = np.sqrt(2) * sc.sigma
-    c = exhaustive.bump_height(sc.density, 1.0, s, 0.5)
+    model = exhaustive.Mixture.of_map(sc.p, s, exhaustive.bump_height(sc.density, 1.0, s, 0.5), 0.5)
     levels, inside = [100.0, 400.0, 900.0], [900, 900, 900]
-    sub = exhaustive.null_log_tail(levels, inside, sc.p, hull, s, c, 0.5)
+    sub = model.null_log_tail(levels, inside)
     monkeypatch.setattr(exhaustive, "QUAD_MAX_CENTRES", 10_000)
-    full = exhaustive.null_log_tail(levels, inside, sc.p, hull, s, c, 0.5)
+    full = model.null_log_tail(levels, inside)
     assert np.all(full < -10) and np.allclose(sub, full, rtol=0.05)
 
 
@@ -134,29 +132,6 @@ def test_limit_experiment_resumes_without_recomputing_finished_pairs(tmp_path, m
     assert (table.found_rate == table.detected_rate).all() and (table.found_rate <= table.ml_accurate_rate).all()
     # The correspondence oracle misses the related seeds 4k + 1: 2 of the 8 per cell.
     assert list(table.correspondence_found_rate) == [0.75] * 4
-
-
-def test_pairs_of_small_sets_are_the_k_d_trees_pairs(rng):
-    """Sets that fit in one k-d tree leaf are compared directly: the same pairs within the radius
-    as scipy's pair search, with the same squared distances (to rounding), whatever their order."""
-    from scipy.spatial import cKDTree
-
-    from mapmerge.exhaustive import KDTREE_LEAF, _near_d2
-
-    for _ in range(3000):
-        m, n = rng.integers(1, KDTREE_LEAF + 1, 2)
-        x, P = rng.uniform(0, 1, (m, 2)) * 10.0 ** rng.uniform(-3, 3), rng.uniform(0, 1, (n, 2))
-        x[: m // 3] = P[rng.integers(0, n, m // 3)] + rng.normal(0, 1e-9, (m // 3, 2))  # some on top of p's
-        radius = float(rng.uniform(0.01, 1.2))
-        tree = cKDTree(x).sparse_distance_matrix(cKDTree(P), radius, output_type="ndarray")
-        j, d2, i = _near_d2(P, x, radius)
-        # Pairs on the radius itself may fall either side of it by rounding.
-        ours = np.abs(np.sqrt(d2) - radius) > 1e-12 * radius
-        theirs = np.abs(tree["v"] - radius) > 1e-12 * radius
-        a = np.lexsort((i[ours], j[ours]))
-        b = np.lexsort((tree["j"][theirs], tree["i"][theirs]))
-        np.testing.assert_array_equal(np.c_[j[ours], i[ours]][a], np.c_[tree["i"], tree["j"]][theirs][b])
-        np.testing.assert_allclose(d2[ours][a], tree["v"][theirs][b] ** 2, rtol=1e-12, atol=0)
 
 
 @pytest.mark.parametrize("argv, message", [

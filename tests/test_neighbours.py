@@ -1,0 +1,53 @@
+"""The grid neighbour search against scipy's k-d tree, and the compiled kernels against their Python source."""
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+import mapmerge as mm
+from mapmerge import exhaustive, neighbours
+
+
+@pytest.mark.parametrize("scale", [1e-6, 1.0, 1e6])
+def test_grid_counts_and_nearest_neighbours_are_the_k_d_trees(rng, scale):
+    for _ in range(200):
+        m, n = rng.integers(1, 60, 2)
+        P = rng.uniform(0, 1, (n, 2)) * scale * 10.0 ** rng.uniform(-2, 2)
+        x = np.concatenate([rng.uniform(-0.2, 1.2, (m, 2)) * P.max(), P[rng.integers(0, n, 3)]])
+        radius = float(rng.uniform(0.01, 1.0) * P.max())
+        grid = neighbours.cell_grid(P, radius)
+        tree = cKDTree(P)
+        # Points on the radius itself may fall either side of it by rounding: compare off the boundary.
+        d = np.sqrt(((x[:, None] - P[None]) ** 2).sum(-1))
+        clear = np.all(np.abs(d - radius) > 1e-9 * radius, axis=1)
+        count = neighbours.count_within(x, *grid.arrays(), radius)
+        np.testing.assert_array_equal(count[clear], tree.query_ball_point(x, radius, return_length=True)[clear])
+        near, dist = neighbours.nearest_within(x, *grid.arrays(), radius)
+        t_dist, t_near = tree.query(x, distance_upper_bound=radius)
+        found = np.isfinite(t_dist) & (t_dist < radius)
+        np.testing.assert_array_equal(near >= 0, found)
+        np.testing.assert_allclose(dist[found], t_dist[found], rtol=1e-12)
+        np.testing.assert_array_equal(near[found], np.argmin(d, axis=1)[found])
+
+
+def test_grid_of_points_spread_over_any_extent_keeps_its_keys_in_range():
+    P = np.array([[0.0, 0.0], [1e300, 1.0], [-1e300, 5.0]])
+    grid = neighbours.cell_grid(P, 1e-12)
+    assert grid.nx <= neighbours.MAX_CELLS_PER_AXIS and grid.ny <= neighbours.MAX_CELLS_PER_AXIS
+    assert neighbours.count_within(P, *grid.arrays(), 1e-12).tolist() == [1, 1, 1]
+
+
+def test_compiled_mixture_kernels_equal_their_python_source():
+    """numba is optional: without it the same functions run as Python. Both give the same numbers."""
+    em = exhaustive._em_rounds
+    if not hasattr(em, "py_func"):
+        pytest.skip("numba is not installed: the kernels already run as Python")
+    sc = mm.simulate.make_pair(40, 0.75, 20, rng=3)
+    s = np.sqrt(2) * sc.sigma
+    model = exhaustive.Mixture.of_map(sc.p, s, exhaustive.bump_height(sc.density, 1.0, s, 0.5), 0.5)
+    args = (sc.q, sc.theta + 0.01, sc.t[0] + 0.1, sc.t[1], model.hull.equations, s, model.c, exhaustive.EXACT_RADIUS * s,
+            exhaustive.EM_ROUNDS, *model.grid.arrays())
+    np.testing.assert_allclose(em(*args), em.py_func(*args), rtol=1e-12)
+    x = sc.q[:20]
+    np.testing.assert_allclose(exhaustive.bump_sums(x, s, 5 * s, *model.grid.arrays()),
+                               exhaustive.bump_sums.py_func(x, s, 5 * s, *model.grid.arrays()), rtol=1e-12)
