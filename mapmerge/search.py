@@ -20,7 +20,7 @@ without any correspondence:
    ``MIXTURE_PRIOR``, a noisy copy of some p landmark, otherwise anywhere).
 4. Acceptance is a contrario on that model's log-likelihood ratio Λ: for a
    fixed transform, unrelated maps put q's landmarks uniformly over p's
-   hull, and ``exhaustive.null_log_tail`` bounds P(Λ >= observed) by
+   hull, and ``exhaustive.Mixture.null_log_tail`` bounds P(Λ >= observed) by
    Chernoff's inequality, computed from p's own landmarks (no tuning, no
    sampling). With H the number of (rotation, translation) hypotheses at
    resolution r, ``NFA = H · P(Λ >= observed)``, and the best hypothesis is
