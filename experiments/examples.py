@@ -50,7 +50,7 @@ def example_tables(seed: int, scenario: dict, matcher: dict, trials) -> dict[str
     lp_true = None if match is None else pair_labels(batch, match.tri_p, match.tri_q, match.trial,
                                                      match.triangle_pairs)[0]
     merged = merge_at(batch.p, batch.q, batch.sigma, match, rule_log_tau(rule, match, lp_true, len(batch)),
-                      method.name, **matcher_covariances(batch, matcher))
+                      method=method.name, **matcher_covariances(batch, matcher))
     for b, k in enumerate(trials):
         sc, res = batch[b], merged.result(b)
         vp, vq = res.tri_p.vertices, res.tri_q.vertices

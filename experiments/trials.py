@@ -224,7 +224,7 @@ def _evaluate(sc, match, log_tau, method, covariances, n_common, lp_true, lp_con
     ``first_pose`` (θ, t) of a real data set adds the errors against its
     second truth, the transform between the agents' first poses.
     """
-    merged = merge_at(sc.p, sc.q, sc.sigma, match, log_tau, method, **covariances, search_memo=search_memo)
+    merged = merge_at(sc.p, sc.q, sc.sigma, match, log_tau, method=method, **covariances, search_memo=search_memo)
     if n_common is None:
         n_common = metrics.common_triangle_counts(sc.ids_p, sc.ids_q, merged.tri_p, merged.tri_q)
     if match is not None and merged.triangle_pairs is match.triangle_pairs:

@@ -12,11 +12,13 @@ build the combined map (15).
 the Monte Carlo harness. A method has two stages so that callers comparing
 thresholds on the same maps match once and declare per τ:
 ``match_stage`` (τ-independent: triangles and tentative pairs) and
-``merge_at`` (declare at log τ, associate, combine).
+``merge_at`` (declare at log τ, associate, combine: the registry entry's
+own ``merge``, called with a ``MergeInputs``).
 """
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Callable
 
@@ -39,6 +41,74 @@ from .triangles import triangulate_batches
 
 
 @dataclass(frozen=True)
+class MergeInputs:
+    """What a method's ``merge`` takes: B valid map pairs and the results of the match stage.
+
+    Attributes
+    ----------
+    method : str
+        The method's name (what the ``MergeBatch`` reports).
+    P, Q : (B, n_p, 2), (B, n_q, 2) ndarray
+    sigma : (B,) ndarray
+    match : TriangleMatch or None
+        The tentative triangle pairs (``match_stage``); None for methods without τ.
+    log_tau : (B,) ndarray
+        The threshold of each map pair.
+    cov_p, cov_q : (B, n, 2, 2) ndarray or None
+        The landmarks' own covariances.
+    rng : Generator or None
+        Randomness of randomised baselines.
+    search_memo : search.SearchMemo or None
+        Global searches already made on these map pairs (consensus's fallback).
+    """
+
+    method: str
+    P: np.ndarray
+    Q: np.ndarray
+    sigma: np.ndarray
+    match: TriangleMatch | None
+    log_tau: np.ndarray
+    cov_p: np.ndarray | None = None
+    cov_q: np.ndarray | None = None
+    rng: np.random.Generator | None = None
+    search_memo: object = None
+
+
+def _declared_merge(x: MergeInputs) -> MergeBatch:
+    """The triangle-LP methods (paper, cyclic): declare at log τ, resolve the correspondences, fit and combine."""
+    match, P, Q = x.match, x.P, x.Q
+    declared = match.log_lr >= x.log_tau[match.trial]
+    # Landmark indices offset by pair so that one call resolves every pair's conflicts.
+    n = max(P.shape[1], Q.shape[1])
+    tb = match.trial[declared][:, None] * n
+    uniq, keep, _ = resolve_correspondences(tb + match.p_vertices[declared], tb + match.q_vertices[declared],
+                                         match.log_lr[declared])
+    pairs = uniq[keep]
+    return build_batch(
+        method=x.method, P=P, Q=Q, sigma=x.sigma, log_tau=x.log_tau, tri_p=match.tri_p, tri_q=match.tri_q,
+        tri_trial=match.trial, triangle_pairs=match.triangle_pairs, triangle_log_lr=match.log_lr,
+        declared=declared, pair_trial=pairs[:, 0] // n, pairs=(pairs % n).astype(np.intp),
+        n_conflicts=np.bincount(uniq[~keep, 0] // n, minlength=len(P)),
+    )
+
+
+def _consensus_merge(x: MergeInputs) -> MergeBatch:
+    """``consensus``: verification, association and acceptance; the global search when triangles find nothing."""
+    return consensus.consensus_merge(x.P, x.Q, x.sigma, x.match, x.log_tau, x.cov_p, x.cov_q,
+                                     fallback=x.search_memo or search.search_pairs)
+
+
+def _search_merge(x: MergeInputs) -> MergeBatch:
+    """``search``: the global (θ, t) search, no triangle matching."""
+    return search.search_merge(x.P, x.Q, x.sigma, *triangulate_batches(x.P, x.Q), x.cov_p, x.cov_q)
+
+
+def _baseline_merge(baseline: Callable, x: MergeInputs) -> MergeBatch:
+    """A baseline's ``merge(P, Q, sigma, tri_p, tri_q, rng)`` on the map pairs."""
+    return baseline(x.P, x.Q, x.sigma, *triangulate_batches(x.P, x.Q), x.rng)
+
+
+@dataclass(frozen=True)
 class Method:
     """A matcher variant.
 
@@ -55,9 +125,9 @@ class Method:
     solve_lp : bool
         Whether the sparse large-map path solves the LP (False: every gated
         candidate passing τ is kept, for consensus verification).
-    baseline : callable or None
-        ``merge(P, Q, sigma, tri_p, tri_q, rng) -> MergeBatch`` of a
-        baseline; None for the triangle-LP methods.
+    merge : callable
+        ``merge(MergeInputs) -> MergeBatch``: the method's τ-dependent stage
+        (``merge_at``); by default the triangle-LP declaration of the paper.
     """
 
     name: str
@@ -65,7 +135,7 @@ class Method:
     uses_tau: bool = True
     cyclic: bool = False
     solve_lp: bool = True
-    baseline: Callable | None = None
+    merge: Callable[[MergeInputs], MergeBatch] = _declared_merge
 
 
 #: The registry: every method ``merge_maps`` and the harness accept.
@@ -74,19 +144,19 @@ METHODS = {m.name: m for m in (
     Method("cyclic", "the paper with the order-robust statistic (best cyclic vertex order)", cyclic=True),
     Method("consensus", "order-robust statistic + transform-consistent verification, landmark association "
            "and an a contrario acceptance test, the global search when triangles find nothing (use this)",
-           cyclic=True, solve_lp=False),
+           cyclic=True, solve_lp=False, merge=_consensus_merge),
     Method("search", "global (θ, t) search with an a contrario acceptance test, no triangles (low SNR)",
-           uses_tau=False),
+           uses_tau=False, merge=_search_merge),
     Method("groth", "baseline: Groth (1986) invariant triangle voting", uses_tau=False,
-           baseline=groth_baseline.merge),
+           merge=functools.partial(_baseline_merge, groth_baseline.merge)),
     Method("astroalign", "baseline: astroalign.find_transform (optional extra [baselines])", uses_tau=False,
-           baseline=astroalign_baseline.merge),
+           merge=functools.partial(_baseline_merge, astroalign_baseline.merge)),
     Method("cpd", "peer: rigid Coherent Point Drift (pycpd, optional extra [peers])", uses_tau=False,
-           baseline=cpd_baseline.merge),
+           merge=functools.partial(_baseline_merge, cpd_baseline.merge)),
     Method("clipper", "peer: CLIPPER consistency graph (built by tools/build_peers.sh)", uses_tau=False,
-           baseline=clipper_baseline.merge),
+           merge=functools.partial(_baseline_merge, clipper_baseline.merge)),
     Method("teaser", "peer: TEASER++ with z = 0 (built by tools/build_peers.sh)", uses_tau=False,
-           baseline=teaser_baseline.merge),
+           merge=functools.partial(_baseline_merge, teaser_baseline.merge)),
 )}
 
 #: Default threshold: reject 1 % of true, order-consistent triangle pairs.
@@ -115,7 +185,7 @@ def match_stage(P: np.ndarray, Q: np.ndarray, sigma: np.ndarray, method: str, ob
     return match_triangles(P, Q, sigma, objective, cyclic=m.cyclic, log_tau=log_tau, solve_lp=m.solve_lp)
 
 
-def merge_at(P: np.ndarray, Q: np.ndarray, sigma: np.ndarray, match: TriangleMatch | None, log_tau: np.ndarray,
+def merge_at(P: np.ndarray, Q: np.ndarray, sigma: np.ndarray, match: TriangleMatch | None, log_tau: np.ndarray, *,
              method: str, cov_p=None, cov_q=None, rng=None, search_memo=None) -> MergeBatch:
     """Declare at log τ (one per map pair), associate landmarks and combine (valid inputs).
 
@@ -125,35 +195,12 @@ def merge_at(P: np.ndarray, Q: np.ndarray, sigma: np.ndarray, match: TriangleMat
     (a ``search.SearchMemo``) lets calls on the same map pairs at other
     thresholds reuse consensus's global searches.
     """
-    batch = _merge_at(P, Q, sigma, match, log_tau, method, cov_p, cov_q, rng, search_memo)
+    m = get_method(method)
+    batch = m.merge(MergeInputs(m.name, P, Q, sigma, match, log_tau, cov_p, cov_q, rng, search_memo))
     return batch if cov_p is None else batch.with_covariances(cov_p, cov_q)
 
 
-def _merge_at(P, Q, sigma, match, log_tau, method, cov_p, cov_q, rng, search_memo=None) -> MergeBatch:
-    m = get_method(method)
-    if m.baseline is not None:
-        return m.baseline(P, Q, sigma, *triangulate_batches(P, Q), rng)
-    if m.name == "search":
-        return search.search_merge(P, Q, sigma, *triangulate_batches(P, Q), cov_p, cov_q)
-    if m.name == "consensus":
-        return consensus.consensus_merge(P, Q, sigma, match, log_tau, cov_p, cov_q,
-                                         fallback=search_memo or search.search_pairs)
-    declared = match.log_lr >= log_tau[match.trial]
-    # Landmark indices offset by pair so that one call resolves every pair's conflicts.
-    n = max(P.shape[1], Q.shape[1])
-    tb = match.trial[declared][:, None] * n
-    uniq, keep, _ = resolve_correspondences(tb + match.p_vertices[declared], tb + match.q_vertices[declared],
-                                         match.log_lr[declared])
-    pairs = uniq[keep]
-    return build_batch(
-        method=m.name, P=P, Q=Q, sigma=sigma, log_tau=log_tau, tri_p=match.tri_p, tri_q=match.tri_q,
-        tri_trial=match.trial, triangle_pairs=match.triangle_pairs, triangle_log_lr=match.log_lr,
-        declared=declared, pair_trial=pairs[:, 0] // n, pairs=(pairs % n).astype(np.intp),
-        n_conflicts=np.bincount(uniq[~keep, 0] // n, minlength=len(P)),
-    )
-
-
-def merge_batch(P, Q, sigma, tau=DEFAULT_TAU, method="consensus", objective="lr", cov_p=None, cov_q=None,
+def merge_batch(P, Q, sigma, *, tau=DEFAULT_TAU, method="consensus", objective="lr", cov_p=None, cov_q=None,
                 rng=None) -> MergeBatch:
     """``merge_maps`` on B map pairs of equal sizes at once.
 
@@ -194,7 +241,7 @@ def merge_batch(P, Q, sigma, tau=DEFAULT_TAU, method="consensus", objective="lr"
         raise ValueError("cov_p and cov_q must be given together")
     cov_p, cov_q = (None if cov is None else _check_batch_covariances(cov, maps, name)
                     for cov, maps, name in ((cov_p, P, "cov_p"), (cov_q, Q, "cov_q")))
-    return _merge(P, Q, sigma, tau, method, objective, cov_p, cov_q, rng)
+    return _merge(P, Q, sigma, (cov_p, cov_q), _Options(tau, method, objective, rng))
 
 
 def _check_batch_covariances(cov, maps: np.ndarray, name: str) -> np.ndarray:
@@ -222,7 +269,7 @@ def pooled_sigma(cov_p, cov_q) -> float:
                                                  np.trace(cov_q, axis1=1, axis2=2)]) / 2)))
 
 
-def merge_maps(P, Q, sigma=None, tau=DEFAULT_TAU, method="consensus", objective="lr", cov_p=None, cov_q=None,
+def merge_maps(P, Q, sigma=None, *, tau=DEFAULT_TAU, method="consensus", objective="lr", cov_p=None, cov_q=None,
                rng=None) -> MergeResult:
     """Match two landmark maps and build their maximum-likelihood combination.
 
@@ -274,8 +321,8 @@ def merge_maps(P, Q, sigma=None, tau=DEFAULT_TAU, method="consensus", objective=
         variances.
     """
     P, Q, sigma, cov_p, cov_q = _check_pair(P, Q, sigma, cov_p, cov_q)
-    return _merge(P[None], Q[None], np.array([sigma]), tau, method, objective,
-                  None if cov_p is None else cov_p[None], None if cov_q is None else cov_q[None], rng).result(0)
+    covs = (None if cov_p is None else cov_p[None], None if cov_q is None else cov_q[None])
+    return _merge(P[None], Q[None], np.array([sigma]), covs, _Options(tau, method, objective, rng)).result(0)
 
 
 def _check_pair(P, Q, sigma, cov_p, cov_q):
@@ -292,14 +339,28 @@ def _check_pair(P, Q, sigma, cov_p, cov_q):
     return P, Q, sigma, cov_p, cov_q
 
 
-def _merge(P, Q, sigma, tau, method, objective, cov_p, cov_q, rng) -> MergeBatch:
-    """The checks ``merge_maps`` and ``merge_batch`` share, then the method's two stages."""
-    log_tau = resolve_log_tau(tau)
-    get_method(method)
-    check_objective(objective)
-    rng = check_rng(rng)
-    match = match_stage(P, Q, sigma, method, objective, log_tau)
-    return merge_at(P, Q, sigma, match, np.full(len(P), log_tau), method, cov_p, cov_q, rng)
+@dataclass(frozen=True)
+class _Options:
+    """The options ``merge_maps`` and ``merge_batch`` share, as their callers gave them."""
+
+    tau: float | str
+    method: str
+    objective: str
+    rng: object
+
+
+def _merge(P, Q, sigma, covs, options: _Options) -> MergeBatch:
+    """The checks ``merge_maps`` and ``merge_batch`` share, then the method's two stages.
+
+    ``covs``: the map pairs' (cov_p, cov_q), checked (or None each).
+    """
+    log_tau = resolve_log_tau(options.tau)
+    get_method(options.method)
+    check_objective(options.objective)
+    rng = check_rng(options.rng)
+    match = match_stage(P, Q, sigma, options.method, options.objective, log_tau)
+    return merge_at(P, Q, sigma, match, np.full(len(P), log_tau), method=options.method, cov_p=covs[0],
+                    cov_q=covs[1], rng=rng)
 
 
 def _check_batch(maps, name: str) -> np.ndarray:
@@ -395,7 +456,7 @@ def residual_match(P, Q, result: MergeResult, sigma=None, tau=DEFAULT_TAU, cov_p
     except ValueError:
         # What is left lies on one line: no triangle, no rigid match to find.
         return none
-    second = merge_maps(P[rest_p], Q[rest_q], sigma, tau, "consensus",
+    second = merge_maps(P[rest_p], Q[rest_q], sigma, tau=tau, method="consensus",
                         cov_p=None if cov_p is None else cov_p[rest_p], cov_q=None if cov_q is None else cov_q[rest_q])
     if not second.matched:
         return none

@@ -295,3 +295,26 @@ def test_neither_the_order_of_the_landmarks_nor_q_s_frame_changes_the_match(meth
         moved = sc.q @ mm.rotation(rng.uniform(-np.pi, np.pi)).T + rng.uniform(-50, 50, 2)
         c = mm.merge_maps(sc.p, moved, sc.sigma, method=method)
         assert c.matched == a.matched and sorted(map(tuple, c.pairs.tolist())) == pairs
+
+
+def test_merge_at_is_one_call_of_the_methods_own_merge_and_consensus_falls_back_on_the_memo():
+    from mapmerge.merging import METHODS, MergeInputs, match_stage, merge_at
+
+    assert all(callable(m.merge) for m in METHODS.values())
+    sc = mm.simulate.make_pairs(20, 0.75, 20.0, seeds=[3, 4], unrelated=True)
+    match = match_stage(sc.p, sc.q, sc.sigma, "consensus", log_tau=-4.0)
+    seen = []
+
+    def memo(P, Q, sigma, cov_p=None, cov_q=None):
+        seen.append(sigma)
+        return np.empty((0, 2), np.intp), np.empty(0, bool), 1.0
+
+    log_tau = np.full(2, -4.0)
+    merged = merge_at(sc.p, sc.q, sc.sigma, match, log_tau, method="consensus", search_memo=memo)
+    # Unrelated maps: the triangles find nothing, so each pair asks the memo instead of searching.
+    assert seen == [float(s) for s in sc.sigma] and not merged.matched.any()
+    direct = METHODS["consensus"].merge(MergeInputs("consensus", sc.p, sc.q, sc.sigma, match, log_tau,
+                                                    search_memo=memo))
+    np.testing.assert_array_equal(direct.triangle_pairs, merged.triangle_pairs)
+    with pytest.raises(TypeError):
+        mm.merge_maps(sc.p[0], sc.q[0], sc.sigma[0], -4.0)  # the options are keyword-only
