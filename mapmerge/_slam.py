@@ -21,16 +21,18 @@ the incremental estimate and is kept only if it lowers the graph's error.
 The trees' joint covariance (2m x 2m) comes from the solution kept;
 ``datasets.slam_map`` derives per-tree covariances from it.
 
-Solutions are cached on disk (``cache_dir()``), keyed by the data file's
-contents, the agent's pose range and the solver's settings: an ordinary
-directory of ``.npz`` files that can be deleted at any time.
+Solutions are cached on disk with ``joblib.Memory`` under
+``cache_dir() / "victoria_park"``, keyed by the data file's contents, the
+log's parsed sightings, the agent's pose range, the solver's settings, the
+source of this module and the GTSAM and numpy versions: a directory that
+can be deleted at any time.
 """
 
 from __future__ import annotations
 
 import hashlib
-import json
 import os
+from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
 import numpy as np
@@ -77,7 +79,7 @@ def solver_settings(overrides=None) -> dict:
         raise ValueError(f"sighting_noise must be 'file' or 'load2d', got {settings['sighting_noise']!r}")
     if settings["sighting_kernel"] not in (None, "huber"):
         raise ValueError(f"sighting_kernel must be None or 'huber', got {settings['sighting_kernel']!r}")
-    # Plain Python numbers: the settings go into the cache key as JSON.
+    # Plain Python numbers: the settings are part of the cache key.
     return {**settings, "relinearize_threshold": float(settings["relinearize_threshold"]),
             "relinearize_skip": int(skip), "prior_sigma": float(settings["prior_sigma"])}
 
@@ -100,12 +102,6 @@ def cache_dir() -> Path:
     return Path(root) if root else Path.home() / ".cache" / "mapmerge" / "slam"
 
 
-def _cache_key(path: Path, start: int, stop: int, settings: dict) -> str:
-    digest = hashlib.sha256(path.read_bytes())
-    digest.update(json.dumps({"start": start, "stop": stop, **settings}, sort_keys=True).encode())
-    return digest.hexdigest()[:24]
-
-
 def agent_map(log, start: int, stop: int, use_cache: bool = True, settings=None):
     """Trees, their estimates and joint covariance for poses ``start..stop-1``.
 
@@ -122,18 +118,33 @@ def agent_map(log, start: int, stop: int, use_cache: bool = True, settings=None)
         the first pose held fixed.
     """
     settings = solver_settings(settings)
-    path = Path(log.path)
-    cached = cache_dir() / f"{_cache_key(path, start, stop, settings)}.npz"
-    if use_cache and cached.is_file():
-        with np.load(cached) as data:
-            return data["ids"], data["points"], data["joint"]
-    ids, points, joint = _solve(log, start, stop, settings)
-    if use_cache:
-        cached.parent.mkdir(parents=True, exist_ok=True)
-        tmp = cached.with_name(f".{cached.name}.{os.getpid()}.tmp.npz")
-        np.savez(tmp, ids=ids, points=points, joint=joint)
-        os.replace(tmp, cached)
-    return ids, points, joint
+    if not use_cache:
+        return _solve(log, start, stop, settings)
+    try:
+        import joblib
+    except ImportError as exc:
+        raise ImportError("the SLAM solves' cache needs joblib: pip install 'mapmerge[slam]'") from exc
+    cached = joblib.Memory(cache_dir() / "victoria_park", verbose=0).cache(_keyed_solve, ignore=["log"])
+    data = hashlib.sha256(Path(log.path).read_bytes()).hexdigest()
+    sightings = (log.pose_ids, log.tree_file_ids, log.obs_pose, log.obs_tree, log.obs_xy, log.obs_cov)
+    return cached(log, data, sightings, start, stop, settings, _code_versions())
+
+
+def _keyed_solve(log, data: str, sightings: tuple, start: int, stop: int, settings: dict, versions: dict):
+    """``_solve``, with what its result depends on besides ``log`` itself as arguments (the cache's key):
+    ``data`` the data file's digest (GTSAM reads the file), ``sightings`` the log's parsed arrays that the
+    solve reads, and ``versions`` the solver's code and libraries (``_code_versions``)."""
+    return _solve(log, start, stop, settings)
+
+
+def _code_versions() -> dict:
+    """This module's source digest and the GTSAM and numpy versions: a solve cached under others is stale."""
+    try:
+        gtsam_version = version("gtsam")
+    except PackageNotFoundError:
+        gtsam_version = None  # _solve names the missing extra
+    return {"source": hashlib.sha256(Path(__file__).read_bytes()).hexdigest(), "gtsam": gtsam_version,
+            "numpy": np.__version__}
 
 
 def _solve(log, start: int, stop: int, settings: dict):

@@ -188,7 +188,7 @@ def merge_many(maps, sigma=None, covs=None, *, method: str = "consensus", tau=DE
         ``candidates`` most similar maps; default "all" up to
         ``ALL_PAIRS_MAX_AGENTS`` maps, else ``CANDIDATE_NEIGHBOURS``.
     n_jobs : int, default 1
-        Processes for the pairwise merges (joblib; -1: every core).
+        Processes for the pairwise merges (joblib, the extra ``[parallel]``; -1: every core).
     rng : None, int, SeedSequence or Generator
         Randomness of randomised pairwise methods, one independent stream per
         pair of maps (the same result for any ``n_jobs``).
@@ -310,8 +310,10 @@ def pairwise_edges(maps, sigmas, covs, pairs, *, method="consensus", tau=DEFAULT
     if n_jobs == 1:
         results = [_merge_pair(*job) for job in jobs]
     else:
-        from joblib import Parallel, delayed
-
+        try:
+            from joblib import Parallel, delayed
+        except ImportError as exc:
+            raise ImportError("n_jobs other than 1 needs joblib: pip install 'mapmerge[parallel]'") from exc
         results = Parallel(n_jobs=n_jobs)(delayed(_merge_pair)(*job) for job in jobs)
     return [Edge(int(i), int(j), *r) for (i, j), r in zip(pairs, results)]
 

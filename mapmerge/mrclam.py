@@ -465,6 +465,8 @@ def solve_robot(odometry: np.ndarray, sightings: np.ndarray, end_time: float, de
 
 def memory():
     """The on-disk cache of calibrations and solves (``joblib.Memory`` under ``cache_dir() / "mrclam"``)."""
-    import joblib
-
+    try:
+        import joblib
+    except ImportError as exc:
+        raise ImportError("the MR.CLAM maps' cache needs joblib: pip install 'mapmerge[slam]'") from exc
     return joblib.Memory(cache_dir() / "mrclam", verbose=0)

@@ -87,7 +87,8 @@ _CORE_ONLY = """
 import sys
 class NotInstalled:
     def find_spec(self, name, path=None, target=None):
-        if name.split(".")[0] in {"ortools", "matplotlib", "hydra", "omegaconf", "pyarrow", "tqdm", "astroalign"}:
+        if name.split(".")[0] in {"ortools", "matplotlib", "hydra", "omegaconf", "pyarrow", "tqdm", "astroalign",
+                                  "pandas", "joblib"}:
             raise ModuleNotFoundError(f"No module named {name!r}")
 sys.meta_path.insert(0, NotInstalled())
 """
@@ -116,6 +117,34 @@ def test_the_core_install_merges_map_files_and_names_the_extra_it_lacks(tmp_path
     proc = merge("large", "--method", "paper")
     assert proc.returncode == 2 and proc.stderr.strip() == (
         "mapmerge: error: the LP of large maps (a min-cost flow) needs OR-Tools: pip install 'mapmerge[large]'")
+
+
+def test_the_core_dependencies_are_numpy_and_scipy():
+    import tomllib
+
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    names = {re.match(r"[A-Za-z0-9_.-]+", requirement).group(0).lower() for requirement in project["dependencies"]}
+    assert names == {"numpy", "scipy"}
+    # What the core left out is still installable by name.
+    extras = project["optional-dependencies"]
+    assert any(r.startswith("pandas") for r in extras["dataframes"]) and any(r.startswith("joblib") for r in extras["parallel"])
+
+
+def test_merging_two_map_files_loads_no_pandas_joblib_hydra_or_matplotlib(tmp_path):
+    import numpy as np
+
+    import mapmerge as mm
+
+    sc = mm.simulate.make_pair(40, 0.75, 30, rng=1)
+    for side, points in (("a", sc.p), ("b", sc.q)):
+        np.savetxt(tmp_path / f"{side}.csv", points, delimiter=",", header="x,y", comments="")
+    heavy = ("pandas", "joblib", "hydra", "matplotlib")
+    code = ("import sys; from mapmerge.cli import main; "
+            f"code = main(['merge', 'a.csv', 'b.csv', '--sigma', '{sc.sigma}', '-o', 'out.csv']); "
+            f"print(code, sorted(m for m in {heavy} if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, check=True).stdout
+    assert out.splitlines()[-1] == "0 []"
+    assert (tmp_path / "out.csv").read_text().startswith("x,y,origin,index_p,index_q,sxx,sxy,syy\n")
 
 
 def test_every_module_is_an_attribute_of_the_package():
