@@ -117,9 +117,9 @@ def make_trials(root_seed: int, scenario: dict, ks):
     scenario = {**LATER_KEYS, **scenario}
     batch = mm.simulate.make_pairs(int(scenario["n_landmarks"]), float(scenario["overlap"]),
                                    float(scenario["snr_db"]), trial_seeds(root_seed, scenario, ks),
-                                   float(scenario["aspect"]), bool(scenario["unrelated"]), str(scenario["layout"]),
-                                   float(scenario["p_detect"]), float(scenario["clutter"]),
-                                   float(scenario["anisotropy"]))
+                                   aspect=float(scenario["aspect"]), unrelated=bool(scenario["unrelated"]),
+                                   layout=str(scenario["layout"]), p_detect=float(scenario["p_detect"]),
+                                   clutter=float(scenario["clutter"]), anisotropy=float(scenario["anisotropy"]))
     return batch, None
 
 

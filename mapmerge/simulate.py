@@ -313,6 +313,7 @@ def make_pair(
     n_landmarks: int = 100,
     overlap: float = 0.75,
     snr_db: float = 40.0,
+    *,
     rng=None,
     aspect: float = DEFAULT_ASPECT,
     unrelated: bool = False,
@@ -361,11 +362,11 @@ def make_pair(
     ValueError
         On out-of-range arguments.
     """
-    return make_pairs(n_landmarks, overlap, snr_db, [check_rng(rng)], aspect, unrelated, layout, p_detect, clutter,
-                      anisotropy)[0]
+    return make_pairs(n_landmarks, overlap, snr_db, [check_rng(rng)], aspect=aspect, unrelated=unrelated,
+                      layout=layout, p_detect=p_detect, clutter=clutter, anisotropy=anisotropy)[0]
 
 
-def make_pairs(n_landmarks: int, overlap: float, snr_db: float, seeds, aspect: float = DEFAULT_ASPECT,
+def make_pairs(n_landmarks: int, overlap: float, snr_db: float, seeds, *, aspect: float = DEFAULT_ASPECT,
                unrelated: bool = False, layout: str = "strip", p_detect: float = DEFAULT_P_DETECT,
                clutter: float = 0.0, anisotropy: float = 0.0) -> ScenarioBatch:
     """Draw one map pair per seed (see ``make_pair`` for the arguments).
@@ -387,7 +388,24 @@ def make_pairs(n_landmarks: int, overlap: float, snr_db: float, seeds, aspect: f
     g = _geometry(n, c, aspect, layout, p_detect, clutter)
     B, m = len(seeds), n + g.k
     blocks = g.blocks + ([g.blocks[0]] if unrelated else []) + g.clutter
-    u = np.empty((B, 2 * sum(count for count, _, _ in blocks)))
+    u, perm_p, perm_q, u3, z = _pair_draws(seeds, 2 * sum(count for count, _, _ in blocks), m)
+    world = _world(blocks, g.height, u)
+    # σ comes from the related world (the true landmarks of either map), also for unrelated pairs.
+    sigma, sigma_bar2 = sigmas_from_snr(world[:, : 2 * n - c], float(snr_db))
+    base_p, base_q = _world_rows(n, c, g.k, unrelated)
+    ids_p, ids_q = base_p[perm_p], base_q[perm_q]
+    theta = -np.pi + (np.pi - -np.pi) * u3[:, 0]
+    t = -g.width + (g.width - -g.width) * u3[:, 1:]
+    p, q, cov_p, cov_q = _noisy_maps(world, ids_p, ids_q, sigma, (theta, t), z, g.height, anisotropy)
+    return ScenarioBatch(p, q, ids_p, ids_q, world, sigma, theta, t, float(snr_db), sigma_bar2,
+                         np.full(B, 0 if unrelated else c), cov_p, cov_q, g.density, g.p_shared)
+
+
+def _pair_draws(seeds, n_uniform: int, m: int):
+    """Each trial's random numbers, from its own seed: the uniforms of its world, the orders of its two
+    maps' rows, the uniforms of its rigid motion and the standard normals of its noise."""
+    B = len(seeds)
+    u = np.empty((B, n_uniform))
     perm_p, perm_q = np.empty((B, m), np.intp), np.empty((B, m), np.intp)
     u3, z = np.empty((B, 3)), np.empty((B, 2, m, 2))
     for k, seed in enumerate(seeds):
@@ -400,19 +418,25 @@ def make_pairs(n_landmarks: int, overlap: float, snr_db: float, seeds, aspect: f
         perm_q[k] = rng.permutation(m)
         rng.random(out=u3[k])
         rng.standard_normal(out=z[k].reshape(-1))
-    world = _world(blocks, g.height, u)
-    # σ comes from the related world (the true landmarks of either map), also for unrelated pairs.
-    sigma, sigma_bar2 = sigmas_from_snr(world[:, : 2 * n - c], float(snr_db))
+    return u, perm_p, perm_q, u3, z
+
+
+def _world_rows(n: int, c: int, k: int, unrelated: bool):
+    """The world rows of map p's and map q's landmarks before each map's own order (``k`` clutter each)."""
     # Ids are world rows: p's landmarks are 0..n-1, q's own n..2n-c-1; q's
     # common ones are p's (fresh rows when unrelated), then each map's clutter.
     fresh = 2 * n - c + (c if unrelated else 0)
-    base_p = np.concatenate([np.arange(n), fresh + np.arange(g.k)])
+    base_p = np.concatenate([np.arange(n), fresh + np.arange(k)])
     base_q = np.concatenate([(2 * n - c if unrelated else 0) + np.arange(c), n + np.arange(n - c),
-                             fresh + g.k + np.arange(g.k)])
-    ids_p, ids_q = base_p[perm_p], base_q[perm_q]
+                             fresh + k + np.arange(k)])
+    return base_p, base_q
+
+
+def _noisy_maps(world, ids_p, ids_q, sigma, motion: tuple, z, height: float, anisotropy: float):
+    """Maps p (world frame) and q (moved by ``motion``, the trials' θ and t) with their noise, and its covariances."""
+    theta, t = motion
+    B, m = ids_p.shape
     rows = np.arange(B)[:, None]
-    theta = -np.pi + (np.pi - -np.pi) * u3[:, 0]
-    t = -g.width + (g.width - -g.width) * u3[:, 1:]
     if anisotropy == 0:
         noise = sigma[:, None, None, None] * z
         p = world[rows, ids_p] + noise[:, 0]
@@ -420,15 +444,14 @@ def make_pairs(n_landmarks: int, overlap: float, snr_db: float, seeds, aspect: f
         cov_p = cov_q = sigma[:, None, None, None] ** 2 * np.eye(2)
         cov_p, cov_q = (np.broadcast_to(cov_p, (B, m, 2, 2)),) * 2
     else:
-        sd_p = sigma[:, None, None] * _relative_sd(world[rows, ids_p, 1], g.height, anisotropy)
-        sd_q = sigma[:, None, None] * _relative_sd(world[rows, ids_q, 1], g.height, anisotropy)
+        sd_p = sigma[:, None, None] * _relative_sd(world[rows, ids_p, 1], height, anisotropy)
+        sd_q = sigma[:, None, None] * _relative_sd(world[rows, ids_q, 1], height, anisotropy)
         p = world[rows, ids_p] + sd_p * z[:, 0]
         # q's noise is drawn in the world frame, where its axes are along and across the path.
         q = rotate(theta, world[rows, ids_q] + sd_q * z[:, 1]) + t[:, None, :]
         cov_p = sd_p[..., None] ** 2 * np.eye(2)
         cov_q = covariance_in_p_frame(-theta, sd_q[..., None] ** 2 * np.eye(2))
-    return ScenarioBatch(p, q, ids_p, ids_q, world, sigma, theta, t, float(snr_db), sigma_bar2,
-                         np.full(B, 0 if unrelated else c), cov_p, cov_q, g.density, g.p_shared)
+    return p, q, cov_p, cov_q
 
 
 @dataclass(frozen=True)
@@ -544,7 +567,15 @@ def check_scenario(n_landmarks, overlap, snr_db, aspect, layout="strip", p_detec
     return n, c
 
 
-#: How agents' windows are arranged in ``make_group`` (see its docstring).
+#: How agents' discs are arranged in ``make_group``; neighbouring agents' discs share
+#: the fraction ``overlap`` of their area:
+#:
+#: - ``chain``: agents on a line, agent i next to i ± 1;
+#: - ``ring``: agents on a circle, the last next to the first (the loop closes);
+#: - ``star``: agent 0 in the centre, every other agent next to it (and to
+#:   neighbours of its own when many crowd around the centre);
+#: - ``random``: agent i next to an earlier agent drawn uniformly, in a
+#:   uniform direction (a random tree, with chance overlaps besides).
 TOPOLOGIES = ("chain", "ring", "star", "random")
 #: Most agents in one synthetic team (strangers included).
 MAX_AGENTS = 1000
@@ -649,28 +680,16 @@ def make_group(n_agents: int = 5, n_landmarks: int = 100, overlap: float = 0.5, 
                p_detect: float = DEFAULT_P_DETECT, rng=None) -> Team:
     """Draw a synthetic team: ``n_agents`` robots whose maps overlap along a topology.
 
-    Each agent explores a disc of area ``n_landmarks`` in a world of landmarks
-    uniform at unit density (a Poisson process over the union of the discs),
-    so a map holds ``n_landmarks`` landmarks on average. Neighbouring agents'
-    discs share the fraction ``overlap`` of their area:
-
-    - ``chain``: agents on a line, agent i next to i ± 1;
-    - ``ring``: agents on a circle, the last next to the first (the loop closes);
-    - ``star``: agent 0 in the centre, every other agent next to it (and to
-      neighbours of its own when many crowd around the centre);
-    - ``random``: agent i next to an earlier agent drawn uniformly, in a
-      uniform direction (a random tree, with chance overlaps besides).
-
-    Agents further apart share what their discs' geometry gives (nothing beyond
-    2 radii). ``layout="strip"``: an agent sees every landmark of its disc;
-    ``"interleaved"``: each landmark independently with probability
-    ``p_detect`` (the density is 1 / ``p_detect``, keeping the mean map size),
-    so landmarks only one agent holds lie among the shared ones. Each agent's
-    frame is the world through a uniform random rotation and a translation
-    uniform over the world's extent, then N(0, σ²) noise per coordinate, σ from
-    ``snr_db`` as in ``make_pair`` with σ̄² the mean over agents of the edge-length
-    variance of the Delaunay graph of the agent's own true landmarks. ``n_strangers`` more agents map discs of worlds of their
-    own (same size, density and σ): they share nothing with the team.
+    Each agent explores a disc of area ``n_landmarks`` in a world of landmarks uniform at unit density (a Poisson
+    process over the union of the discs), so a map holds ``n_landmarks`` landmarks on average. Neighbouring agents'
+    discs share the fraction ``overlap`` of their area, along ``topology`` (``TOPOLOGIES`` describes each). Agents
+    further apart share what their discs' geometry gives (nothing beyond 2 radii). ``layout="strip"``: an agent sees
+    every landmark of its disc; ``"interleaved"``: each landmark independently with probability ``p_detect`` (the
+    density is 1 / ``p_detect``, keeping the mean map size), so landmarks only one agent holds lie among the shared
+    ones. Each agent's frame is the world through a uniform random rotation and a translation uniform over the
+    world's extent, then N(0, σ²) noise per coordinate, σ from ``snr_db`` as in ``make_pair`` with σ̄² the mean over
+    agents of the edge-length variance of the Delaunay graph of the agent's own true landmarks. ``n_strangers`` more
+    agents map discs of worlds of their own (same size, density and σ): they share nothing with the team.
 
     The random draws, in order: the random topology's placements, the world's
     landmarks, the detections, then per agent (strangers last) its own
@@ -702,6 +721,21 @@ def make_group(n_agents: int = 5, n_landmarks: int = 100, overlap: float = 0.5, 
     ScenarioError
         On an argument out of its range (naming it).
     """
+    _check_group(n_agents, n_landmarks, overlap, snr_db, layout, topology, n_strangers, p_detect)
+    rng = np.random.default_rng(check_rng(rng))
+    disc = (np.sqrt(n_landmarks / np.pi), 1.0 if layout == "strip" else float(p_detect))  # radius, detection
+    world, centres, seen = _team_world(int(n_agents), topology, overlap, disc, rng)
+    sigma = _team_sigma(world, seen, snr_db)
+    maps, ids, truth, centre, theta, t = _agent_maps(world, centres, seen, int(n_strangers), disc, sigma, rng)
+    stranger = np.arange(len(maps)) >= int(n_agents)
+    theta[stranger], t[stranger] = np.nan, np.nan
+    return Team(maps=maps, ids=ids, truth=truth, theta=theta, t=t, sigma=sigma,
+                covs=[np.broadcast_to(sigma**2 * np.eye(2), (len(m), 2, 2)) for m in maps], stranger=stranger,
+                centres=centre, snr_db=float(snr_db), topology=topology)
+
+
+def _check_group(n_agents, n_landmarks, overlap, snr_db, layout, topology, n_strangers, p_detect) -> None:
+    """A ScenarioError naming the first of ``make_group``'s arguments out of its range."""
     check_scenario(n_landmarks, 1.0, snr_db, DEFAULT_ASPECT, layout, p_detect)
     if not (_real(n_agents) and int(n_agents) == n_agents and 2 <= n_agents <= MAX_AGENTS):
         raise ScenarioError("n_agents", n_agents, f"must be an integer in [2, {MAX_AGENTS}]")
@@ -714,18 +748,37 @@ def make_group(n_agents: int = 5, n_landmarks: int = 100, overlap: float = 0.5, 
     if n_landmarks * (n_agents + n_strangers) > MAX_MAP_LANDMARKS:
         raise ScenarioError("n_landmarks", n_landmarks, f"must keep n_landmarks * (n_agents + n_strangers) at "
                                                         f"most {MAX_MAP_LANDMARKS:,}")
-    rng = np.random.default_rng(check_rng(rng))
-    n_agents, n_strangers = int(n_agents), int(n_strangers)
-    r = np.sqrt(n_landmarks / np.pi)
-    detect = 1.0 if layout == "strip" else float(p_detect)
+
+
+def _team_world(n_agents: int, topology: str, overlap: float, disc: tuple, rng: np.random.Generator):
+    """The team's discs' centres, the world's landmarks over them and which of them each agent sees.
+
+    ``disc`` is (radius, detection probability).
+    """
+    r, detect = disc
     centres = _window_centres(n_agents, topology, _neighbour_distance(overlap, r), rng)
     world = _window_landmarks(centres, r, 1.0 / detect, rng)
     seen = [(np.sum((world - c) ** 2, axis=1) <= r * r) & (rng.random(len(world)) < detect) for c in centres]
+    return world, centres, seen
+
+
+def _team_sigma(world: np.ndarray, seen: list, snr_db: float) -> float:
+    """The team's σ at ``snr_db``, σ̄² the mean over agents of their own true landmarks' (``seen``) σ̄²."""
     # σ̄² of each agent's own disc, averaged: the union of the discs is not convex, and its Delaunay
     # graph would bridge the gaps between them with long edges (a chain's σ̄² twice a ring's).
     sigma_bar2 = np.mean([sigma_from_snr(world[s], 0.0)[1] for s in seen])
-    sigma = float(np.sqrt(sigma_bar2 / (2.0 * 10.0 ** (float(snr_db) / 10.0))))
+    return float(np.sqrt(sigma_bar2 / (2.0 * 10.0 ** (float(snr_db) / 10.0))))
+
+
+def _agent_maps(world, centres, seen, n_strangers: int, disc: tuple, sigma: float, rng: np.random.Generator):
+    """Each agent's map (the team's, then ``n_strangers`` strangers' with worlds of their own), in its own frame.
+
+    Returns the maps, their landmarks' rows of the joint truth, the joint truth, the discs' centres
+    and the agents' frames (θ, t). ``disc`` is (radius, detection probability).
+    """
+    r, detect = disc
     truth, ids, centre = [world], [np.flatnonzero(s) for s in seen], list(centres)
+    n_agents = len(centres)
     extent = float(np.max(np.ptp(world, axis=0)))
     maps, theta, t = [], [], []
     for i in range(n_agents + n_strangers):
@@ -742,9 +795,4 @@ def make_group(n_agents: int = 5, n_landmarks: int = 100, overlap: float = 0.5, 
         maps.append(rotate(theta[i], x) + t[i] + sigma * rng.standard_normal(x.shape))
         perm = rng.permutation(len(x))
         maps[i], ids[i] = maps[i][perm], ids[i][perm]
-    stranger = np.arange(n_agents + n_strangers) >= n_agents
-    theta, t = np.array(theta), np.array(t)
-    theta[stranger], t[stranger] = np.nan, np.nan
-    return Team(maps=maps, ids=ids, truth=np.concatenate(truth), theta=theta, t=t, sigma=sigma,
-                covs=[np.broadcast_to(sigma**2 * np.eye(2), (len(m), 2, 2)) for m in maps], stranger=stranger,
-                centres=np.array(centre), snr_db=float(snr_db), topology=topology)
+    return maps, ids, np.concatenate(truth), np.array(centre), np.array(theta), np.array(t)
