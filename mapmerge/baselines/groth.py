@@ -76,6 +76,30 @@ def groth_pairs(P, Q, sigma, tri_p: TriangleBatch, tri_q: TriangleBatch):
     coords_p, coords_q = tri_p.coords(), tri_q.coords()
     Rp, Cp, tRp, tCp, sp = _invariants(coords_p, eps[tri_p.trial])
     Rq, Cq, tRq, tCq, sq = _invariants(coords_q, eps[tri_q.trial])
+    tri_trial, i, j = _agreeing_triangles(tri_p, tri_q, (Rp, Cp, tRp, tCp, sp), (Rq, Cq, tRq, tCq, sq))
+    tri_pairs = np.stack([i, j], axis=1)
+    gp, gq = tri_p.offsets[tri_trial] + i, tri_q.offsets[tri_trial] + j
+    vp, vq = tri_p.vertices[gp], tri_q.vertices[gq]
+    cost = min_cost(coords_p, coords_q, pairs=(gp, gq))[0]  # the GLRT's, in Groth order
+    # How closely each pair's invariants agree, in units of their tolerances (larger is closer): it breaks
+    # ties in votes, which the landmarks' order would otherwise break.
+    agreement = -((Rp[gp] - Rq[gq]) ** 2 / (tRp[gp] + tRq[gq]) + (Cp[gp] - Cq[gq]) ** 2 / (tCp[gp] + tCq[gq]))
+    pair_trial, pairs, n_conflicts = _vote(tri_trial, vp, vq, agreement, max(P.shape[1], Q.shape[1]), B)
+    keep = reject_outliers_batch(P, Q, pair_trial, pairs, sigma, GROTH_GATE_P)
+    pair_trial, pairs = pair_trial[keep], pairs[keep]
+    to_q = np.full(B * P.shape[1], -1)
+    to_q[pair_trial * P.shape[1] + pairs[:, 0]] = pairs[:, 1]
+    partner = to_q[(tri_trial * P.shape[1])[:, None] + vp] == vq
+    declared = partner[:, 0] & partner[:, 1] & partner[:, 2]
+    return tri_trial, tri_pairs, -cost / (2 * sigma[tri_trial] ** 2), declared, pair_trial, pairs, n_conflicts
+
+
+def _agreeing_triangles(tri_p: TriangleBatch, tri_q: TriangleBatch, inv_p: tuple, inv_q: tuple):
+    """The triangle pairs of each map pair whose invariants (``_invariants`` of p's and q's triangles)
+    agree: their map pair, p triangle and q triangle (within its map), in row-major order."""
+    Rp, Cp, tRp, tCp, sp = inv_p
+    Rq, Cq, tRq, tCq, sq = inv_q
+    B = len(tri_p)
     # Every p triangle against every q triangle of its own map pair, a block of map pairs at a time;
     # a large map pair alone, a slice of its p triangles at a time (row-major order either way).
     tp, tq = int(tri_p.count.max(initial=0)), int(tri_q.count.max(initial=0))
@@ -103,21 +127,7 @@ def groth_pairs(P, Q, sigma, tri_p: TriangleBatch, tri_q: TriangleBatch):
                                  f"({tp:,} x {tq:,} triangles) pass its invariant test and all would vote "
                                  "(about 480 bytes each); Groth's matcher is for small maps: use method='consensus'")
     tri_trial, i, j = (np.concatenate(v).astype(np.intp) for v in zip(*found))
-    tri_pairs = np.stack([i, j], axis=1)
-    gp, gq = tri_p.offsets[tri_trial] + i, tri_q.offsets[tri_trial] + j
-    vp, vq = tri_p.vertices[gp], tri_q.vertices[gq]
-    cost = min_cost(coords_p, coords_q, pairs=(gp, gq))[0]  # the GLRT's, in Groth order
-    # How closely each pair's invariants agree, in units of their tolerances (larger is closer): it breaks
-    # ties in votes, which the landmarks' order would otherwise break.
-    agreement = -((Rp[gp] - Rq[gq]) ** 2 / (tRp[gp] + tRq[gq]) + (Cp[gp] - Cq[gq]) ** 2 / (tCp[gp] + tCq[gq]))
-    pair_trial, pairs, n_conflicts = _vote(tri_trial, vp, vq, agreement, max(P.shape[1], Q.shape[1]), B)
-    keep = reject_outliers_batch(P, Q, pair_trial, pairs, sigma, GROTH_GATE_P)
-    pair_trial, pairs = pair_trial[keep], pairs[keep]
-    to_q = np.full(B * P.shape[1], -1)
-    to_q[pair_trial * P.shape[1] + pairs[:, 0]] = pairs[:, 1]
-    partner = to_q[(tri_trial * P.shape[1])[:, None] + vp] == vq
-    declared = partner[:, 0] & partner[:, 1] & partner[:, 2]
-    return tri_trial, tri_pairs, -cost / (2 * sigma[tri_trial] ** 2), declared, pair_trial, pairs, n_conflicts
+    return tri_trial, i, j
 
 
 def _padded_rows(tri: TriangleBatch, maps: np.ndarray, width: int) -> np.ndarray:
