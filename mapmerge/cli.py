@@ -254,30 +254,7 @@ def _merge(args) -> int:
               f"no match: {args.maps[1]} could not be matched to {args.maps[0]} (method {res.method}); "
               "nothing written", file=sys.stdout if args.json else sys.stderr)
         return EXIT_NO_MATCH
-    second = residual_match(map_p.points, map_q.points, res, sigma, args.tau, map_p.cov, map_q.cov)
-    info["second_match"] = ({"pairs": int(len(second.pairs)),
-                             "rotation_offset_deg": float(np.degrees(second.rotation_offset))}
-                            if second.matched else None)
-    rigid = rigid_check(map_p.points, map_q.points, res, sigma, map_p.cov, map_q.cov)
-    info["rigid_check"] = {"agree": rigid.agree, "outliers": rigid.n_outliers, "bound": rigid.bound,
-                           "max_stat": rigid.max_stat,
-                           "wrong_merge": rigid.n_outliers > WRONG_MERGE_SHARE * len(res.pairs)}
-    warnings = []
-    if second.matched:
-        warnings.append(f"the landmarks left unpaired hold a second rigid match ({len(second.pairs)} pairs, "
-                        f"rotated {np.degrees(second.rotation_offset):.2f} deg against the first): one map is "
-                        "bent, so the combined map aligns only the larger matched part and holds the other "
-                        "part's common landmarks twice" + ("" if res.method == "consensus" else
-                                                           f", or the {res.method} match is wrong"))
-    if res.method in UNTESTED_METHODS and not rigid.agree:
-        wrong = info["rigid_check"]["wrong_merge"]
-        warnings.append((f"the {res.method} merge is probably wrong: {rigid.n_outliers} of its" if wrong else
-                         f"{rigid.n_outliers} of the {res.method} merge's")
-                        + f" {len(res.pairs)} landmark pairs lie off its rigid motion, "
-                        f"beyond the chi-square bound (largest {rigid.max_stat:.3g} against {rigid.bound:.3g})"
-                        + (f", and {res.n_conflicts} were dropped as conflicts" if res.n_conflicts else "")
-                        + ("" if wrong else ": those pairs are probably wrong, their fused rows join two "
-                           "landmarks") + f"; {res.method} has no acceptance test (consensus has)")
+    info["second_match"], info["rigid_check"], warnings = _checks_of_the_match(map_p, map_q, res, sigma, args.tau)
     info["warnings"] += warnings
     try:
         info["output"] = str(write_map(res, args.output, map_p, map_q))
@@ -291,17 +268,50 @@ def _merge(args) -> int:
     if args.json:
         print(json.dumps(info))
     else:
-        frame = _frame(info["theta_deg"], info["theta_std_deg"], info["t"], info["t_std"])
-        print(f"matched ({res.method}): {frame} [q ≈ R(theta) p + t]; {info['pairs']} landmark pairs, "
-              f"{info['conflicts']} "
-              f"conflict{'' if info['conflicts'] == 1 else 's'}")
-        if args.sigma is None:
-            print(f"sigma = {info['sigma']:.6g} (RMS of the maps' own standard deviations)")
-        print(f"combined map: {len(res.merged)} landmarks -> {info['output']}"
-              + (f"; plot -> {info['plot']}" if args.plot else ""))
+        _print_merge(info, res, args)
     for message in warnings:
         warn(message)
     return EXIT_MATCHED
+
+
+def _checks_of_the_match(map_p: LandmarkMap, map_q: LandmarkMap, res, sigma: float, tau):
+    """A second rigid match among the unpaired landmarks and the rigid check of the pairs: their
+    ``--json`` entries and the warnings they call for."""
+    second = residual_match(map_p.points, map_q.points, res, sigma, tau, map_p.cov, map_q.cov)
+    second_info = ({"pairs": int(len(second.pairs)), "rotation_offset_deg": float(np.degrees(second.rotation_offset))}
+                   if second.matched else None)
+    rigid = rigid_check(map_p.points, map_q.points, res, sigma, map_p.cov, map_q.cov)
+    rigid_info = {"agree": rigid.agree, "outliers": rigid.n_outliers, "bound": rigid.bound,
+                  "max_stat": rigid.max_stat, "wrong_merge": rigid.n_outliers > WRONG_MERGE_SHARE * len(res.pairs)}
+    warnings = []
+    if second.matched:
+        warnings.append(f"the landmarks left unpaired hold a second rigid match ({len(second.pairs)} pairs, "
+                        f"rotated {np.degrees(second.rotation_offset):.2f} deg against the first): one map is "
+                        "bent, so the combined map aligns only the larger matched part and holds the other "
+                        "part's common landmarks twice" + ("" if res.method == "consensus" else
+                                                           f", or the {res.method} match is wrong"))
+    if res.method in UNTESTED_METHODS and not rigid.agree:
+        wrong = rigid_info["wrong_merge"]
+        warnings.append((f"the {res.method} merge is probably wrong: {rigid.n_outliers} of its" if wrong else
+                         f"{rigid.n_outliers} of the {res.method} merge's")
+                        + f" {len(res.pairs)} landmark pairs lie off its rigid motion, "
+                        f"beyond the chi-square bound (largest {rigid.max_stat:.3g} against {rigid.bound:.3g})"
+                        + (f", and {res.n_conflicts} were dropped as conflicts" if res.n_conflicts else "")
+                        + ("" if wrong else ": those pairs are probably wrong, their fused rows join two "
+                           "landmarks") + f"; {res.method} has no acceptance test (consensus has)")
+    return second_info, rigid_info, warnings
+
+
+def _print_merge(info: dict, res, args) -> None:
+    """The text report of a matched pair of maps (``--json`` prints ``info`` instead)."""
+    frame = _frame(info["theta_deg"], info["theta_std_deg"], info["t"], info["t_std"])
+    print(f"matched ({res.method}): {frame} [q ≈ R(theta) p + t]; {info['pairs']} landmark pairs, "
+          f"{info['conflicts']} "
+          f"conflict{'' if info['conflicts'] == 1 else 's'}")
+    if args.sigma is None:
+        print(f"sigma = {info['sigma']:.6g} (RMS of the maps' own standard deviations)")
+    print(f"combined map: {len(res.merged)} landmarks -> {info['output']}"
+          + (f"; plot -> {info['plot']}" if args.plot else ""))
 
 
 def _merge_many(args) -> int:
