@@ -110,7 +110,7 @@ def assign_sparse(log_lr: np.ndarray, pairs: np.ndarray, shape, objective: str =
         return np.empty((0, 2), dtype=np.intp)
     gain = np.exp(log_lr) if objective == "lr" else log_lr - float(log_lr.min())
     # Nodes: p triangles 0..n_p-1, q triangles n_p..n_p+n_q-1, source, sink.
-    source, sink = n_p + n_q, n_p + n_q + 1
+    sink = n_p + n_q + 1
     # OR-Tools refuses costs beyond about 2**61.6 / (node count); two bits spare.
     bits = min(SPARSE_COST_BITS, 59 - int(np.ceil(np.log2(sink + 2))))
     top = float(gain.max())
@@ -118,9 +118,16 @@ def assign_sparse(log_lr: np.ndarray, pairs: np.ndarray, shape, objective: str =
     # A pair whose gain rounds to 0 is worth no more than leaving its p triangle unpaired: dropping it
     # leaves the optimum's value (such pairs lie far below any usual τ: log Λ < -27.7 at 10⁵ landmarks).
     worth = cost < 0
-    pairs, cost = pairs[worth], cost[worth]
+    return _solve_flow(min_cost_flow.SimpleMinCostFlow(), pairs[worth], cost[worth], n_p, n_q)
+
+
+def _solve_flow(flow, pairs: np.ndarray, cost: np.ndarray, n_p: int, n_q: int) -> np.ndarray:
+    """The pairs ``assign_sparse``'s flow graph routes a unit through, sorted by p index.
+
+    ``flow`` is an empty OR-Tools ``SimpleMinCostFlow``; ``cost`` the pairs' integer costs.
+    """
+    source, sink = n_p + n_q, n_p + n_q + 1
     p_node, q_node = local_numbering(pairs, n_p, n_q)
-    flow = min_cost_flow.SimpleMinCostFlow()
     flow.add_arcs_with_capacity_and_unit_cost(
         np.concatenate([np.full(n_p, source), p_node[pairs[:, 0]], np.arange(n_p), n_p + np.arange(n_q)]),
         np.concatenate([np.arange(n_p), q_node[pairs[:, 1]], np.full(n_p, sink), np.full(n_q, sink)]),

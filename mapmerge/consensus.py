@@ -34,6 +34,7 @@ When the triangles give no significant match, ``consensus_merge`` runs its
 from __future__ import annotations
 
 import dataclasses
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import ConvexHull
@@ -92,6 +93,19 @@ def _gate_d2(cp, cq, theta, t, var):
     return np.sum((ex**2 + ey**2) / var, axis=-1)
 
 
+@dataclass(frozen=True)
+class _Pool:
+    """One map pair's candidate triangle pairs and the pool its hypotheses are counted on (``_consensus``)."""
+
+    vp: np.ndarray  # (C, 3) vertices of the candidates' p triangles, paired with vq's
+    vq: np.ndarray
+    P: np.ndarray
+    Q: np.ndarray
+    scores: np.ndarray  # (C,) log Λ
+    sigma: float
+    pool: np.ndarray  # candidate indices, best first
+
+
 def _consensus(vp, vq, P, Q, scores, sigma):
     """Index set of the largest transform-consistent group of candidate pairs.
 
@@ -122,11 +136,12 @@ def _consensus(vp, vq, P, Q, scores, sigma):
     # Sorted by count: the hypotheses from the first one short of MIN_CONSENSUS on have fewer.
     order = np.lexsort((-scores[hyp], -count))[:REFINE]
     order = order[count[order] >= MIN_CONSENSUS]
+    cand = _Pool(vp, vq, P, Q, scores, sigma, pool)
     if large:
         centres = pooled.mean(axis=1)
-        groups = (_grow(vp, vq, P, Q, scores, sigma, pool, centres, hyp[h], gate) for h in order)
+        groups = (_grow(cand, centres, hyp[h], gate) for h in order)
     else:
-        groups = _refit_groups(vp, vq, P, Q, scores, sigma, pool, inliers[order], gate)
+        groups = _refit_groups(cand, inliers[order], gate)
     best, best_key = np.empty(0, dtype=np.intp), (0, 0.0)
     for members in groups:
         key = (members.size, float(scores[members].sum()))
@@ -135,10 +150,10 @@ def _consensus(vp, vq, P, Q, scores, sigma):
     return best
 
 
-def _refit_groups(vp, vq, P, Q, scores, sigma, pool, inliers, gate):
+def _refit_groups(cand: _Pool, inliers, gate):
     """Each hypothesis's group after one refit on its inliers' landmarks, all hypotheses at once.
 
-    ``inliers`` (H, pool) marks each hypothesis's pool members. Their
+    ``inliers`` (H, pool) marks each hypothesis's members of ``cand.pool``. Their
     landmark correspondences are resolved and fitted per hypothesis
     (landmark indices offset per hypothesis, so none competes with another's),
     and the pool is gated under each fit; hypotheses with fewer than 3
@@ -147,6 +162,7 @@ def _refit_groups(vp, vq, P, Q, scores, sigma, pool, inliers, gate):
     """
     if len(inliers) == 0:
         return []
+    vp, vq, P, Q, scores, sigma, pool = cand.vp, cand.vq, cand.P, cand.Q, cand.scores, cand.sigma, cand.pool
     n_p, n_q = len(P), len(Q)
     h, at = np.nonzero(inliers)
     members = pool[at]
@@ -168,14 +184,16 @@ def _refit_groups(vp, vq, P, Q, scores, sigma, pool, inliers, gate):
     return [pool[row] for row in inside]
 
 
-def _grow(vp, vq, P, Q, scores, sigma, pool, centres, seed, gate):
-    """Grow a transform-consistent group outwards from one hypothesis.
+def _grow(cand: _Pool, centres, seed, gate):
+    """Grow a transform-consistent group outwards from one hypothesis (candidate ``seed``).
 
     A single triangle's rotation is too uncertain to judge far-away pairs
     (its gate must be loose there, and loose gates let chance pairs in), so
     pairs are admitted ring by ring, ``GROW_FACTOR`` times farther each
     round, each ring gated under the refit of everything admitted so far.
+    ``centres``: the centroid of each pool member's p triangle.
     """
+    vp, vq, P, Q, scores, sigma, pool = cand.vp, cand.vq, cand.P, cand.Q, cand.scores, cand.sigma, cand.pool
     dist = np.linalg.norm(centres - P[vp[seed]].mean(axis=0), axis=1)
     side = np.sqrt(np.sum((P[vp[seed]] - P[vp[seed]].mean(axis=0)) ** 2) / 2)
     al = align_pairs(P[vp[seed]], Q[vq[seed]], sigma)
@@ -226,7 +244,7 @@ def _hough_pool(cp, cq, scores, sigma):
     idx = idx[np.all(np.abs(cell - best) <= 1, axis=1)]
     return idx[np.argsort(-scores[idx], kind="stable")][:MAX_POOL]
 
-def match_nfa(P, Q, alignment, pairs, n_hypotheses: int, sigma: float, cov_p=None, cov_q=None,
+def match_nfa(P, Q, alignment, pairs, n_hypotheses: int, sigma: float, *, cov_p=None, cov_q=None,
               hull=None) -> float:
     """Number of false alarms of a match, a contrario (Moisan & Stival 2004).
 
@@ -318,7 +336,7 @@ def consensus_pairs(P, Q, sigma, vp, vq, scores, cov_p=None, cov_q=None):
     if pairs.shape[0] >= 3:
         pairs, contested = _mixture_associate(P, Q, pairs, sigma, cov_p, cov_q, hulls)
     if pairs.shape[0] < 3 or match_nfa(P, Q, align_pairs(P[pairs[:, 0]], Q[pairs[:, 1]], sigma), pairs,
-                                       len(scores), sigma, cov_p, cov_q, hulls[0]) > MATCH_NFA:
+                                       len(scores), sigma, cov_p=cov_p, cov_q=cov_q, hull=hulls[0]) > MATCH_NFA:
         return np.empty((0, 2), dtype=np.intp), np.empty(0, dtype=bool), n_conflicts
     return pairs, contested, n_conflicts
 

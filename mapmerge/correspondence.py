@@ -71,9 +71,33 @@ def resolve_correspondences(vertices_p, vertices_q, log_lr=None, min_votes=1):
     width = int(d.max()) - lo + 1
     keys = vp * width + (d - lo)
     score = None if log_lr is None else np.repeat(log_lr, 3)
-    # Only each group's size and best score are read, so the order within a group is free: count the
-    # keys in a table where their range is small, sort them where it is not (large maps).
-    n_keys = (int(vp.max()) + 1) * width
+    present, all_votes, best = _grouped_keys(keys, score, (int(vp.max()) + 1) * width)
+    p, d = np.divmod(present, width)
+    uniq = np.stack([p, p + d + lo], axis=1)  # sorted by (p, q), as the keys
+    # Only candidates sharing a landmark with another can lose; rank those.
+    keep = all_votes >= min_votes
+    up, uq = uniq[keep, 0], uniq[keep, 1]
+    contested = np.flatnonzero(keep)[(np.bincount(up)[up] > 1) | (np.bincount(uq)[uq] > 1)]
+    if contested.size == 0:
+        return uniq, keep, all_votes
+    cp, cq = uniq[contested, 0], uniq[contested, 1]
+    # Rank: votes down, then the best score down, then position ((p, q) order). By votes alone a key
+    # ordering as (votes down, position) serves without a sort; with scores, the score is compared
+    # among each landmark's leaders by votes (``_leaders``) rather than sorted: many candidates (Groth's
+    # hundreds per map pair) and few rounds.
+    votes = all_votes[contested]
+    rank = (votes.max() - votes) * contested.size + np.arange(contested.size)
+    keep[contested] = _greedy(cp, cq, rank, votes, None if score is None else best[contested])
+    return uniq, keep, all_votes
+
+
+def _grouped_keys(keys, score, n_keys: int):
+    """The distinct ``keys`` (ascending), how often each occurs and, with ``score``, each one's best score.
+
+    Only each group's size and best score are read, so the order within a group is free: the keys are
+    counted in a table where their range (``n_keys``) is small, sorted where it is not (large maps).
+    """
+    best = None
     if n_keys <= KEY_TABLE_FACTOR * keys.size:
         counts = np.bincount(keys, minlength=n_keys)
         present = np.flatnonzero(counts)
@@ -90,28 +114,19 @@ def resolve_correspondences(vertices_p, vertices_q, log_lr=None, min_votes=1):
         all_votes = np.diff(np.concatenate((start, [keys.size])))
         if score is not None:
             best = np.maximum.reduceat(score[order], start)
-    p, d = np.divmod(present, width)
-    uniq = np.stack([p, p + d + lo], axis=1)  # sorted by (p, q), as the keys
-    # Only candidates sharing a landmark with another can lose; rank those.
-    keep = all_votes >= min_votes
-    up, uq = uniq[keep, 0], uniq[keep, 1]
-    contested = np.flatnonzero(keep)[(np.bincount(up)[up] > 1) | (np.bincount(uq)[uq] > 1)]
-    if contested.size == 0:
-        return uniq, keep, all_votes
-    cp, cq = uniq[contested, 0], uniq[contested, 1]
-    # Rank: votes down, then the best score down, then position ((p, q) order). By votes alone a key
-    # ordering as (votes down, position) serves without a sort; with scores, the score is compared
-    # among each landmark's leaders by votes (``_leaders``) rather than sorted: many candidates (Groth's
-    # hundreds per map pair) and few rounds.
-    votes = all_votes[contested]
-    rank = (votes.max() - votes) * contested.size + np.arange(contested.size)
-    best = None if score is None else best[contested]
-    # Greedy in rank order, in rounds: a candidate ranked first among the
-    # live ones sharing its p and its q is exactly one the sequential greedy
-    # keeps; keeping it kills its rivals. Conflicts are rare, so few rounds.
-    won = np.zeros(contested.size, dtype=bool)
+    return present, all_votes, best
+
+
+def _greedy(cp, cq, rank, votes, best):
+    """Which contested candidates (p, q) = (cp, cq) the sequential greedy in rank order keeps.
+
+    Greedy in rank order, in rounds: a candidate ranked first among the
+    live ones sharing its p and its q is exactly one the sequential greedy
+    keeps; keeping it kills its rivals. Conflicts are rare, so few rounds.
+    """
+    won = np.zeros(cp.size, dtype=bool)
     taken_p, taken_q = np.zeros(int(cp.max()) + 1, dtype=bool), np.zeros(int(cq.max()) + 1, dtype=bool)
-    live = np.arange(contested.size)  # shrinks each round: most candidates die in the first ones
+    live = np.arange(cp.size)  # shrinks each round: most candidates die in the first ones
     while live.size:
         lp, lq, lr = cp[live], cq[live], rank[live]
         lb = None if best is None else best[live]
@@ -119,8 +134,7 @@ def resolve_correspondences(vertices_p, vertices_q, log_lr=None, min_votes=1):
         won[live[first]] = True
         taken_p[lp[first]] = taken_q[lq[first]] = True
         live = live[~taken_p[lp] & ~taken_q[lq]]
-    keep[contested] = won
-    return uniq, keep, all_votes
+    return won
 
 
 _NO_RANK = np.iinfo(np.int64).max

@@ -209,8 +209,8 @@ def match_triangles(P: np.ndarray, Q: np.ndarray, sigma: np.ndarray, objective: 
     if sparse and not finite_tau:
         raise ValueError("the sparse path needs a finite threshold tau")
     if sparse:
-        parts = [_sparse_pairs(tri_p, tri_q, vp, vq, b, float(sigma[b]), objective, cyclic, log_tau, solve_lp)
-                 for b in range(len(tri_p))]
+        options = _SparseOptions(objective, cyclic, log_tau, solve_lp)
+        parts = [_sparse_pairs(tri_p, tri_q, vp, vq, b, float(sigma[b]), options) for b in range(len(tri_p))]
         trial = np.repeat(np.arange(len(parts)), [len(p[0]) for p in parts])
         i, j, score, shift = (np.concatenate([p[k] for p in parts]) for k in range(4))
     else:
@@ -245,14 +245,25 @@ def _dense_pairs(tri_p, tri_q, vp, vq, sigma, objective, cyclic):
     return trial[order], i[order], j[order], score[order], shift[order]
 
 
-def _sparse_pairs(tri_p, tri_q, vp, vq, b, sigma, objective, cyclic, log_tau, solve_lp):
+@dataclass(frozen=True)
+class _SparseOptions:
+    """``match_triangles``' options that the sparse path of every map pair shares."""
+
+    objective: str
+    cyclic: bool
+    log_tau: float
+    solve_lp: bool
+
+
+def _sparse_pairs(tri_p, tri_q, vp, vq, b, sigma, options: _SparseOptions):
     """(i, j, log Λ, shift) of the tentative pairs of map pair ``b`` on the gated sparse graph."""
+    objective, cyclic, log_tau = options.objective, options.cyclic, options.log_tau
     P, Q = tri_p.maps[b], tri_q.maps[b]
     vp, vq = vp[tri_p.offsets[b]:tri_p.offsets[b + 1]], vq[tri_q.offsets[b]:tri_q.offsets[b + 1]]
     cand = candidate_pairs(P[vp], Q[vq], sigma, log_tau, SPARSE_NEIGHBOURS)
     cost, shift = min_cost(P[vp], Q[vq], cyclic, pairs=(cand[:, 0], cand[:, 1]))
     score = log_lr_from_cost(cost, sigma)
-    if solve_lp:
+    if options.solve_lp:
         chosen = assign_sparse(score, cand, (len(vp), len(vq)), objective)
         # Both sorted by p index: map the chosen pairs back to their candidate rows.
         at = np.searchsorted(cand[:, 0] * len(vq) + cand[:, 1], chosen[:, 0] * len(vq) + chosen[:, 1])

@@ -445,23 +445,32 @@ def residual_match(P, Q, result: MergeResult, sigma=None, tau=DEFAULT_TAU, cov_p
         raise ValueError("result must be a matched merge (result.matched is False)")
     if np.any(result.pairs[:, 0] >= len(P)) or np.any(result.pairs[:, 1] >= len(Q)):
         raise ValueError("result pairs rows beyond P or Q; pass the maps it merged")
-    rest_p = np.setdiff1d(np.arange(len(P)), result.pairs[:, 0])
-    rest_q = np.setdiff1d(np.arange(len(Q)), result.pairs[:, 1])
     none = ResidualMatch(False, float("nan"), np.full(2, np.nan), np.empty((0, 2), np.intp), float("nan"))
-    if min(len(rest_p), len(rest_q)) < 3:
+    rest = _unpaired(P, Q, result)
+    if rest is None:
         return none
-    try:
-        check_geometry(P[rest_p][None], "P")
-        check_geometry(Q[rest_q][None], "Q")
-    except ValueError:
-        # What is left lies on one line: no triangle, no rigid match to find.
-        return none
+    rest_p, rest_q = rest
     second = merge_maps(P[rest_p], Q[rest_q], sigma, tau=tau, method="consensus",
                         cov_p=None if cov_p is None else cov_p[rest_p], cov_q=None if cov_q is None else cov_q[rest_q])
     if not second.matched:
         return none
     pairs = np.stack([rest_p[second.pairs[:, 0]], rest_q[second.pairs[:, 1]]], axis=1)
     return ResidualMatch(True, second.theta, second.t, pairs, float(wrap_angle(second.theta - result.theta)))
+
+
+def _unpaired(P, Q, result: MergeResult):
+    """The rows of P and of Q that ``result`` left unpaired, or None when they hold no triangle."""
+    rest_p = np.setdiff1d(np.arange(len(P)), result.pairs[:, 0])
+    rest_q = np.setdiff1d(np.arange(len(Q)), result.pairs[:, 1])
+    if min(len(rest_p), len(rest_q)) < 3:
+        return None
+    try:
+        check_geometry(P[rest_p][None], "P")
+        check_geometry(Q[rest_q][None], "Q")
+    except ValueError:
+        # What is left lies on one line: no triangle, no rigid match to find.
+        return None
+    return rest_p, rest_q
 
 
 #: ``rigid_check`` flags a merge when a landmark pair lies farther from the fitted motion than a correct

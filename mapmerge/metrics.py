@@ -13,12 +13,13 @@ agree vertex by vertex. Over the LP's tentative pairs at threshold τ:
 from __future__ import annotations
 
 import dataclasses
+from types import SimpleNamespace
 
 import numpy as np
 from scipy.special import chdtri
 
 from .alignment import Alignment, align_pairs, covariance_in_p_frame, rotate, wrap_angle
-from .combining import ONLY_Q
+from .combining import ONLY_Q, CombinedBatch
 from .result import MergeResult
 
 
@@ -242,14 +243,17 @@ def map_errors(scenario, result) -> dict:
         raise ValueError(f"result must be the MergeResult of merge_maps, got {type(result).__name__}")
     c = result.combined
     origin = np.select([c.origin == "fused", c.origin == "p"], [0, 1], 2)
-    out = errors_batch(
-        np.asarray(scenario.p)[None], np.asarray(scenario.ids_p)[None], np.asarray(scenario.ids_q)[None],
-        np.asarray(scenario.truth)[None],
-        np.array([scenario.theta]), np.asarray(scenario.t)[None], np.array([scenario.sigma]),
-        np.array([scenario.n_common]), np.zeros(len(result.pairs), np.intp), result.pairs,
-        np.array([result.n_conflicts]), np.array([result.matched]), np.array([result.theta]),
-        np.asarray(result.t)[None], np.zeros(len(c.points), np.intp), c.points, origin, c.index_p, c.index_q)
-    return {k: v[0].item() for k, v in out.items()}
+    # A batch of one of each, with the fields map_errors_batch reads.
+    truth = SimpleNamespace(p=np.asarray(scenario.p)[None], ids_p=np.asarray(scenario.ids_p)[None],
+                            ids_q=np.asarray(scenario.ids_q)[None], truth=np.asarray(scenario.truth)[None],
+                            theta=np.array([scenario.theta]), t=np.asarray(scenario.t)[None],
+                            sigma=np.array([scenario.sigma]), n_common=np.array([scenario.n_common]))
+    rows = CombinedBatch(trial=np.zeros(len(c.points), np.intp), offsets=np.array([0, len(c.points)]),
+                         points=c.points, origin=origin, index_p=c.index_p, index_q=c.index_q)
+    merged = SimpleNamespace(pair_trial=np.zeros(len(result.pairs), np.intp), pairs=result.pairs,
+                             n_conflicts=np.array([result.n_conflicts]), matched=np.array([result.matched]),
+                             theta=np.array([result.theta]), t=np.asarray(result.t)[None], combined=rows)
+    return {k: v[0].item() for k, v in map_errors_batch(truth, merged).items()}
 
 
 def map_errors_batch(scenarios, merged) -> dict:
@@ -258,15 +262,12 @@ def map_errors_batch(scenarios, merged) -> dict:
     ``scenarios`` holds the ground truth with a leading batch axis
     (``simulate.ScenarioBatch``); ``merged`` is a ``MergeBatch``.
     """
+    P, ids_p, ids_q, truth, sigma, n_common = (scenarios.p, scenarios.ids_p, scenarios.ids_q, scenarios.truth,
+                                               scenarios.sigma, scenarios.n_common)
+    true_theta, true_t = scenarios.theta, scenarios.t
+    pair_trial, pairs, matched, theta, t = merged.pair_trial, merged.pairs, merged.matched, merged.theta, merged.t
     c = merged.combined
-    return errors_batch(scenarios.p, scenarios.ids_p, scenarios.ids_q, scenarios.truth, scenarios.theta, scenarios.t,
-                        scenarios.sigma, scenarios.n_common, merged.pair_trial, merged.pairs, merged.n_conflicts,
-                        merged.matched, merged.theta, merged.t, c.trial, c.points, c.origin, c.index_p, c.index_q)
-
-
-def errors_batch(P, ids_p, ids_q, truth, true_theta, true_t, sigma, n_common, pair_trial, pairs, n_conflicts,
-                 matched, theta, t, row_trial, points, origin, index_p, index_q) -> dict:
-    """The map-level errors from plain arrays (see ``map_errors_batch``)."""
+    row_trial, points, origin, index_p, index_q = c.trial, c.points, c.origin, c.index_p, c.index_q
     B = len(ids_p)
     K = np.bincount(pair_trial, minlength=B)
     correct = np.bincount(pair_trial, ids_p[pair_trial, pairs[:, 0]] == ids_q[pair_trial, pairs[:, 1]],
@@ -285,7 +286,7 @@ def errors_batch(P, ids_p, ids_q, truth, true_theta, true_t, sigma, n_common, pa
     nan = np.where(matched, 0.0, np.nan)
     return {
         "matched": matched, "n_pairs": K, "correct_pairs": correct, "wrong_pairs": K - correct,
-        "missed_pairs": n_common - correct, "n_conflicts": np.asarray(n_conflicts, dtype=np.int64),
+        "missed_pairs": n_common - correct, "n_conflicts": np.asarray(merged.n_conflicts, dtype=np.int64),
         "rot_err_deg": rot_err_deg + nan, "trans_err": trans_err + nan, "rmse": rmse + nan,
         "duplicates": duplicates,
         "success": matched & (rot_err_deg < SUCCESS_DEG) & (rmse < SUCCESS_RMSE_SIGMAS * sigma),
