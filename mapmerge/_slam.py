@@ -152,11 +152,36 @@ def _solve(log, start: int, stop: int, settings: dict):
         import gtsam
     except ImportError as exc:
         raise ImportError("source='slam' needs GTSAM: pip install 'mapmerge[slam]'") from exc
-    graph, _ = gtsam.load2D(str(log.path))
     pose_keys = [int(k) for k in log.pose_ids[start:stop]]
-    step = {key: k for k, key in enumerate(pose_keys)}
     tree_key = [int(gtsam.Symbol("l", int(f)).key()) for f in log.tree_file_ids]
     tree_of = {key: k for k, key in enumerate(tree_key)}
+    odometry, sightings = _factors_by_pose(log, pose_keys, tree_key, settings)
+    full, estimate, placed = _incremental_solve(pose_keys, odometry, sightings, settings)
+    solution = estimate
+    if settings["batch_refinement"]:
+        refined = gtsam.LevenbergMarquardtOptimizer(full, estimate).optimize()
+        if full.error(refined) < full.error(estimate):
+            solution = refined
+    trees = sorted(placed, key=lambda t: tree_of[t])
+    ids = np.array([tree_of[t] for t in trees], dtype=np.intp)
+    points = np.array([solution.atPoint2(t) for t in trees])
+    keys = gtsam.KeyVector()
+    for tree in trees:
+        keys.append(tree)
+    # GTSAM orders the joint marginal's blocks by key, not as asked: put them in the trees' order.
+    blocks = np.argsort(np.argsort(np.array(trees, dtype=np.uint64)))
+    rows = (2 * blocks[:, None] + np.arange(2)).ravel()
+    joint = gtsam.Marginals(full, solution).jointMarginalCovariance(keys).fullMatrix()[np.ix_(rows, rows)]
+    return ids, points, joint
+
+
+def _factors_by_pose(log, pose_keys: list, tree_key: list, settings: dict):
+    """The data file's factors of poses ``pose_keys``, as GTSAM's ``load2D`` reads them, by pose:
+    the odometry into pose k and the bearing-range sightings taken at pose k (their noise per ``settings``)."""
+    import gtsam
+
+    graph, _ = gtsam.load2D(str(log.path))
+    step = {key: k for k, key in enumerate(pose_keys)}
     kernel = gtsam.noiseModel.mEstimator.Huber.Create(HUBER_K) if settings["sighting_kernel"] == "huber" else None
     # Factors in time order: odometry into pose k, then the sightings taken at pose k.
     odometry, sightings = {}, {k: [] for k in range(len(pose_keys))}
@@ -181,6 +206,13 @@ def _solve(log, start: int, stop: int, settings: dict):
             noise = gtsam.noiseModel.Robust.Create(kernel, noise)
         m = factor.measured()
         sightings[step[keys[0]]].append(gtsam.BearingRangeFactor2D(keys[0], keys[1], m.bearing(), m.range(), noise))
+    return odometry, sightings
+
+
+def _incremental_solve(pose_keys: list, odometry: dict, sightings: dict, settings: dict):
+    """iSAM2 pose by pose (a tree seen for the first time placed from that sighting): the whole
+    factor graph, iSAM2's estimate at the end and the keys of the trees placed."""
+    import gtsam
 
     params = gtsam.ISAM2Params()
     params.setRelinearizeThreshold(settings["relinearize_threshold"])
@@ -211,20 +243,4 @@ def _solve(log, start: int, stop: int, settings: dict):
         isam.update(new, values)
         full.push_back(new)
         previous = isam.calculateEstimatePose2(key)
-    estimate = isam.calculateEstimate()
-    solution = estimate
-    if settings["batch_refinement"]:
-        refined = gtsam.LevenbergMarquardtOptimizer(full, estimate).optimize()
-        if full.error(refined) < full.error(estimate):
-            solution = refined
-    trees = sorted(placed, key=lambda t: tree_of[t])
-    ids = np.array([tree_of[t] for t in trees], dtype=np.intp)
-    points = np.array([solution.atPoint2(t) for t in trees])
-    keys = gtsam.KeyVector()
-    for tree in trees:
-        keys.append(tree)
-    # GTSAM orders the joint marginal's blocks by key, not as asked: put them in the trees' order.
-    blocks = np.argsort(np.argsort(np.array(trees, dtype=np.uint64)))
-    rows = (2 * blocks[:, None] + np.arange(2)).ravel()
-    joint = gtsam.Marginals(full, solution).jointMarginalCovariance(keys).fullMatrix()[np.ix_(rows, rows)]
-    return ids, points, joint
+    return full, isam.calculateEstimate(), placed
