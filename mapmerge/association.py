@@ -139,8 +139,8 @@ def posterior_association(P, x, cov_p, cov_x, log_prior: float, with_margin: boo
 
 
 #: Components of more landmarks (rows or columns) than this get no margins: one assignment per pair would
-#: cost O(m⁴) (49 s for one 2,000-landmark component, σ half the landmark spacing); where so many pairs
-#: compete they are contested anyway, and are reported so (margin 0).
+#: cost O(m⁴) (docs/tuning.md); where so many pairs compete they are contested anyway, and are reported so
+#: (margin 0).
 MAX_MARGIN_COMPONENT = 300
 
 

@@ -67,18 +67,15 @@ HOUGH_WIDTH = 3.0
 GROW_FACTOR = 3.0
 #: A match is accepted when its number of false alarms (``match_nfa``: the
 #: expected number of equally good chance matches among the hypotheses
-#: tried) is at most this. The count of hypotheses understates the search
-#: (groups, association rounds), so the bound is set well below 1/trials:
-#: at 1e-3, 2 of 1,000 unrelated pairs at 40 dB still merged; at 1e-6, none.
-#: True overlaps of tens of landmarks have NFA far below either.
+#: tried) is at most this: well below 1/trials, because the count of
+#: hypotheses understates the search (why 1e-6: docs/tuning.md).
 MATCH_NFA = 1e-6
 #: The χ² quantile of the triangle gate: 3 vertices (6 coordinates).
 GATE_6 = float(chdtri(6, GATE_P))
 #: Hypotheses (most inliers first) refitted on their inliers and recounted.
 REFINE = 32
-#: Refit-and-associate rounds after the consensus fit, before the EM step (with EM
-#: after it, a second round changed no found / missed outcome on the 600 tuning
-#: pairs, seeds 400000-400299 at 12.5 and 15 dB).
+#: Refit-and-associate rounds after the consensus fit, before the EM step: one, as the
+#: EM step after it leaves a second nothing to improve (docs/tuning.md).
 ASSOCIATION_ROUNDS = 1
 
 

@@ -76,15 +76,12 @@ MIXTURE_PRIOR = 0.5
 REFINE_ROUNDS = 4
 #: A match is accepted when its number of false alarms is at most this: an
 #: unrelated pair of maps passes with probability at most about this at a
-#: fixed transform (from 5 dB up, none of 12,000 unrelated tuning pairs passed).
+#: fixed transform (tuning: docs/tuning.md).
 SEARCH_NFA = 1e-4
 #: The search declines when the pair noise r exceeds this many landmark
 #: spacings of p (``sqrt(hull area / n_p)``): every q landmark then has a
 #: chance partner within the noise, and the bound of step 4 no longer holds
-#: over the search as a whole. On unrelated tuning pairs (seeds 430000-430499,
-#: 440000-440999) 14 of 6,000 at 0-2.5 dB passed ``SEARCH_NFA`` (smallest NFA
-#: 2e-10), every one with r >= 0.65 spacings; the related tuning pairs whose
-#: transform the search found (400000-400199, 5-12.5 dB) all had r <= 0.58.
+#: over the search as a whole (where that happened on tuning pairs: docs/tuning.md).
 MAX_NOISE_SPACING = 0.6
 #: Landmarks per map used to vote; larger maps vote with about this many (``_thinned``).
 MAX_SEARCH_LANDMARKS = 300
