@@ -188,18 +188,9 @@ def _read_table(path: Path, columns: int) -> np.ndarray:
     return table
 
 
-def load_log(path=None) -> VictoriaParkLog:
-    """Parse the Victoria Park files from ``path`` (default: the bundled copy).
-
-    Raises
-    ------
-    DatasetError
-        If a file is missing or a line does not parse.
-    """
-    root = Path(path) if path is not None else DATA_DIR
-    log = root / LOG_FILE
-    if not log.is_file():
-        raise DatasetError(f"Victoria Park file not found: {log}")
+def _read_log_records(log: Path):
+    """The observation log's records: the pose chain's file ids, each odometry line's motion and
+    covariance, and each tree observation (pose id, tree id, x, y) with its covariance."""
     pose_ids: list[int] = []
     odometry, odometry_cov, observations, obs_cov = [], [], [], []
     with open(log) as fh:
@@ -225,6 +216,22 @@ def load_log(path=None) -> VictoriaParkLog:
                     raise ValueError(f"unknown record {fields[0]!r} with {len(fields)} fields")
             except ValueError as exc:
                 raise DatasetError(f"{log}:{number}: {exc}") from None
+    return pose_ids, odometry, odometry_cov, observations, obs_cov
+
+
+def load_log(path=None) -> VictoriaParkLog:
+    """Parse the Victoria Park files from ``path`` (default: the bundled copy).
+
+    Raises
+    ------
+    DatasetError
+        If a file is missing or a line does not parse.
+    """
+    root = Path(path) if path is not None else DATA_DIR
+    log = root / LOG_FILE
+    if not log.is_file():
+        raise DatasetError(f"Victoria Park file not found: {log}")
+    pose_ids, odometry, odometry_cov, observations, obs_cov = _read_log_records(log)
     index = {pid: i for i, pid in enumerate(pose_ids)}
     tree_ids: dict[int, int] = {}
     for _, lm, _, _ in observations:
@@ -307,25 +314,12 @@ def victoria_park(cut: int = DEFAULT_CUT, source: str = "reference", path=None, 
         raise ValueError(f"source must be one of {SOURCES}, got {source!r}")
     log = load_log(path)
     n_ref = log.trajectory.shape[0]
-    if isinstance(cut, bool) or int(cut) != cut or not 1 <= cut < n_ref - 1:
-        raise ValueError(f"cut must be an integer pose index in [1, {n_ref - 2}], got {cut!r}")
-    cut = int(cut)
-    if isinstance(min_sightings, bool) or int(min_sightings) != min_sightings or min_sightings < 1:
-        raise ValueError(f"min_sightings must be an integer >= 1, got {min_sightings!r}")
+    cut = _check_cut(cut, min_sightings, n_ref)
     # Observations from poses without a reference pose cannot be placed (the SLAM solve uses them).
     valid = log.obs_pose < n_ref if source == "reference" else np.ones(len(log.obs_pose), bool)
     sel_p, sel_q = valid & (log.obs_pose < cut), valid & (log.obs_pose >= cut)
     first_p, first_q = log.trajectory[0], log.trajectory[cut]
-    if source == "reference":
-        ids_p, world_p, cov_p = _reference_map(log, sel_p)
-        ids_q, world_q, cov_q = _reference_map(log, sel_q)
-        rot_p, rot_q = rotation(first_p[2]), rotation(first_q[2])
-        p, q = _to_frame(world_p, first_p), _to_frame(world_q, first_q)
-        cov_p = rot_p.T @ cov_p @ rot_p
-        cov_q = rot_q.T @ cov_q @ rot_q
-    else:
-        ids_p, p, cov_p = slam_map(0, cut, path)
-        ids_q, q, cov_q = slam_map(cut, None, path)
+    (ids_p, p, cov_p), (ids_q, q, cov_q) = _agent_tree_maps(log, source, (sel_p, sel_q), cut, path)
     seen_p = np.bincount(log.obs_tree[sel_p], minlength=len(log.trees))[ids_p] >= min_sightings
     seen_q = np.bincount(log.obs_tree[sel_q], minlength=len(log.trees))[ids_q] >= min_sightings
     ids_p, p, cov_p = ids_p[seen_p], p[seen_p], cov_p[seen_p]
@@ -345,13 +339,40 @@ def victoria_park(cut: int = DEFAULT_CUT, source: str = "reference", path=None, 
         cov_p=cov_p, cov_q=cov_q, cut=cut, source=source, poses_p=cut, poses_q=n_ref - cut,
         theta_first_pose=theta_first, t_first_pose=t_first,
     )
+    _warn_of_bad_maps(pair)
+    return pair
+
+
+def _check_cut(cut, min_sightings, n_ref: int) -> int:
+    """``cut`` as an int, after a ValueError on a bad ``cut`` (``n_ref`` reference poses) or ``min_sightings``."""
+    if isinstance(cut, bool) or int(cut) != cut or not 1 <= cut < n_ref - 1:
+        raise ValueError(f"cut must be an integer pose index in [1, {n_ref - 2}], got {cut!r}")
+    if isinstance(min_sightings, bool) or int(min_sightings) != min_sightings or min_sightings < 1:
+        raise ValueError(f"min_sightings must be an integer >= 1, got {min_sightings!r}")
+    return int(cut)
+
+
+def _agent_tree_maps(log: VictoriaParkLog, source: str, selections: tuple, cut: int, path):
+    """Each agent's (ids, trees in its first pose's frame, covariances), built as ``source`` says from its
+    observations ``selections`` (p's, q's)."""
+    if source == "slam":
+        return slam_map(0, cut, path), slam_map(cut, None, path)
+    maps = []
+    for sel, first in zip(selections, (log.trajectory[0], log.trajectory[cut])):
+        ids, world, cov = _reference_map(log, sel)
+        rot = rotation(first[2])
+        maps.append((ids, _to_frame(world, first), rot.T @ cov @ rot))
+    return maps
+
+
+def _warn_of_bad_maps(pair: AgentPair) -> None:
+    """Warn of an agent's map further from the reference map than its own covariances allow."""
     for agent, quality in map_quality(pair).items():
         expected = np.sqrt(2) * quality["rms_sd"]  # RMS distance its own covariances predict
         if quality["rmse"] > QUALITY_WARNING * expected:
-            warnings.warn(f"Victoria Park cut {cut} ({source}): agent {agent}'s map is {quality['rmse']:.1f} m RMS "
-                          f"from the reference map after a rigid fit, {quality['rmse'] / expected:.1f} times what its "
-                          "own covariances predict", stacklevel=2)
-    return pair
+            warnings.warn(f"Victoria Park cut {pair.cut} ({pair.source}): agent {agent}'s map is "
+                          f"{quality['rmse']:.1f} m RMS from the reference map after a rigid fit, "
+                          f"{quality['rmse'] / expected:.1f} times what its own covariances predict", stacklevel=3)
 
 
 #: Per-tree covariances ``slam_map`` can report (see there).
@@ -616,41 +637,44 @@ def mrclam(path=None, robots=(1, 2, 3, 4, 5), until_s=None) -> mrclam_slam.Mrcla
     until_s = _check_until_s(until_s)
     recording = load_mrclam(path, robots)
     memory = mrclam_slam.memory()
-    cached_calibrate, cached_solve = memory.cache(mrclam_slam.calibrate), memory.cache(mrclam_slam.solve_robot)
+    solvers = memory.cache(mrclam_slam.calibrate), memory.cache(mrclam_slam.solve_robot)
     truth = np.full((max(mrclam_slam.LANDMARKS) + 1, 2), np.nan)
     truth[recording.landmarks[:, 0].astype(int)] = recording.landmarks[:, 1:]
-    out = {name: [] for name in ("maps", "covs", "shape_covs", "ids", "first_poses", "theta", "t", "sigma",
-                                 "rms", "rms_incremental", "sightings", "rejected", "calibrations")}
-    for k in robots:
-        log = recording.robots[k]
-        cal = cached_calibrate(log, recording.landmarks, mrclam_slam.CALIBRATION_WINDOW, mrclam_slam.DELAY_GRID)
-        first = log.odometry[0, 0]
-        end = log.odometry[-1, 0] if until_s is None else min(log.odometry[-1, 0], recording.start + until_s)
-        use = (log.sightings[:, 0] >= first) & (log.sightings[:, 0] <= end)
-        if end <= first or np.unique(log.sightings[use, 1]).size < 2:
-            raise ValueError(f"until_s={until_s} leaves robot {k} with fewer than 2 landmarks sighted: "
-                             "choose a longer time")
-        sol = cached_solve(log.odometry[log.odometry[:, 0] <= end], log.sightings[use], float(end), cal.delay,
-                           cal.odometry_sigma, np.array([cal.bearing_sigma, cal.range_sigma]), mrclam_slam.solver_settings())
-        ids, points, joint = sol["ids"], sol["points"], sol["joint"]
-        m = len(ids)
-        floor = cal.landmark_sigma**2 * np.eye(2)
-        covs = joint.reshape(m, 2, m, 2)[np.arange(m), :, np.arange(m), :] + floor
-        shape = rigid_free_covariance(points, joint).reshape(m, 2, m, 2)[np.arange(m), :, np.arange(m), :] + floor
-        fit = align_pairs(truth[ids], points, 1.0)  # map ≈ R(θ) world + t
-        out["maps"].append(points)
-        out["covs"].append(covs)
-        out["shape_covs"].append(shape)
-        out["ids"].append(ids)
-        out["first_poses"].append(mrclam_slam.vicon_poses(log.groundtruth, np.array([first]))[0])
-        out["theta"].append(fit.theta)
-        out["t"].append(fit.t)
-        out["sigma"].append(float(np.sqrt(np.mean(np.trace(shape, axis1=1, axis2=2) / 2))))
-        out["rms"].append(fit_error(points, truth[ids])["rmse"])
-        out["rms_incremental"].append(fit_error(sol["incremental"], truth[ids])["rmse"])
-        out["sightings"].append(int(use.sum()))
-        out["rejected"].append(sol["rejected"])
-        out["calibrations"].append(cal)
+    rows = [_mrclam_robot(recording, k, until_s, solvers, truth) for k in robots]
+    return _mrclam_team(robots, rows, truth, until_s)
+
+
+def _mrclam_robot(recording: mrclam_slam.Recording, k: int, until_s, solvers: tuple, truth: np.ndarray) -> dict:
+    """Robot k's calibration, map and its fit onto the surveyed landmarks ``truth``, with the cached
+    ``solvers`` (calibrate, solve_robot); ``until_s`` as for ``mrclam``."""
+    cached_calibrate, cached_solve = solvers
+    log = recording.robots[k]
+    cal = cached_calibrate(log, recording.landmarks, mrclam_slam.CALIBRATION_WINDOW, mrclam_slam.DELAY_GRID)
+    first = log.odometry[0, 0]
+    end = log.odometry[-1, 0] if until_s is None else min(log.odometry[-1, 0], recording.start + until_s)
+    use = (log.sightings[:, 0] >= first) & (log.sightings[:, 0] <= end)
+    if end <= first or np.unique(log.sightings[use, 1]).size < 2:
+        raise ValueError(f"until_s={until_s} leaves robot {k} with fewer than 2 landmarks sighted: "
+                         "choose a longer time")
+    sol = cached_solve(log.odometry[log.odometry[:, 0] <= end], log.sightings[use], float(end), cal.delay,
+                       cal.odometry_sigma, np.array([cal.bearing_sigma, cal.range_sigma]), mrclam_slam.solver_settings())
+    ids, points, joint = sol["ids"], sol["points"], sol["joint"]
+    m = len(ids)
+    floor = cal.landmark_sigma**2 * np.eye(2)
+    covs = joint.reshape(m, 2, m, 2)[np.arange(m), :, np.arange(m), :] + floor
+    shape = rigid_free_covariance(points, joint).reshape(m, 2, m, 2)[np.arange(m), :, np.arange(m), :] + floor
+    fit = align_pairs(truth[ids], points, 1.0)  # map ≈ R(θ) world + t
+    return {"maps": points, "covs": covs, "shape_covs": shape, "ids": ids,
+            "first_poses": mrclam_slam.vicon_poses(log.groundtruth, np.array([first]))[0],
+            "theta": fit.theta, "t": fit.t, "sigma": float(np.sqrt(np.mean(np.trace(shape, axis1=1, axis2=2) / 2))),
+            "rms": fit_error(points, truth[ids])["rmse"],
+            "rms_incremental": fit_error(sol["incremental"], truth[ids])["rmse"],
+            "sightings": int(use.sum()), "rejected": sol["rejected"], "calibrations": cal}
+
+
+def _mrclam_team(robots: tuple, rows: list, truth: np.ndarray, until_s) -> mrclam_slam.MrclamTeam:
+    """The robots' ``_mrclam_robot`` rows as one team."""
+    out = {name: [row[name] for row in rows] for name in rows[0]}
     first_poses = np.array(out["first_poses"])
     first_poses[:, 2] = wrap_angle(first_poses[:, 2])
     return mrclam_slam.MrclamTeam(
@@ -661,4 +685,3 @@ def mrclam(path=None, robots=(1, 2, 3, 4, 5), until_s=None) -> mrclam_slam.Mrcla
         rejected=np.array(out["rejected"]),
         calibrations=tuple(out["calibrations"]), until_s=until_s,
     )
-

@@ -385,17 +385,52 @@ def solve_robot(odometry: np.ndarray, sightings: np.ndarray, end_time: float, de
     poses = dead_reckon(delayed(odometry, delay), times)
     steps = relative_poses(poses[:-1], poses[1:])
     step_sigma = np.maximum(odometry_sigma[None, :] * np.sqrt(np.diff(times))[:, None], settings["prior_sigma"])
-    at_pose = np.searchsorted(times, sightings[:, 0])
-    by_pose = np.searchsorted(at_pose, np.arange(len(times) + 1))
-
-    def pose_key(i):
-        return gtsam.symbol("x", int(i))
-
-    def landmark_key(subject):
-        return gtsam.symbol("l", int(subject))
-
     sighting_noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(settings["huber_k"]),
                                                     gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sighting_sigma, float)))
+    full, motion, seen, estimate = _incremental_solve(times, steps, step_sigma, sightings, sighting_noise, settings)
+    refined = gtsam.LevenbergMarquardtOptimizer(full, estimate).optimize()
+    solution = refined if full.error(refined) < full.error(estimate) else estimate
+    full, solution, keep = _reject_misreads(full, solution, (motion, seen), sightings, len(times), sighting_sigma,
+                                            settings)
+    ids = np.unique(sightings[keep, 1]).astype(np.int64)
+    keys = gtsam.KeyVector()
+    for subject in ids:
+        keys.append(_landmark_key(subject))
+    # The joint marginal's blocks come in key order, which for one symbol letter is the ids' order.
+    joint = gtsam.Marginals(full, solution).jointMarginalCovariance(keys).fullMatrix()
+    return {
+        "ids": ids,
+        "points": np.array([solution.atPoint2(_landmark_key(s)) for s in ids]).reshape(-1, 2),
+        "incremental": np.array([estimate.atPoint2(_landmark_key(s)) for s in ids]).reshape(-1, 2),
+        "joint": joint,
+        "poses": len(times),
+        "rejected": int(np.sum(~keep)),
+    }
+
+
+def _pose_key(i) -> int:
+    import gtsam
+
+    return gtsam.symbol("x", int(i))
+
+
+def _landmark_key(subject) -> int:
+    import gtsam
+
+    return gtsam.symbol("l", int(subject))
+
+
+def _incremental_solve(times, steps, step_sigma, sightings, sighting_noise, settings: dict):
+    """iSAM2 pose by pose at ``times`` (odometry ``steps`` with σ ``step_sigma``; each of ``sightings`` at
+    its pose, a landmark seen for the first time placed from that sighting).
+
+    Returns the whole factor graph, its prior and odometry factors, its sighting factors (in the
+    sightings' order) and iSAM2's estimate at the end.
+    """
+    import gtsam
+
+    at_pose = np.searchsorted(times, sightings[:, 0])
+    by_pose = np.searchsorted(at_pose, np.arange(len(times) + 1))
     params = gtsam.ISAM2Params()
     params.setRelinearizeThreshold(settings["relinearize_threshold"])
     params.relinearizeSkip = settings["relinearize_skip"]
@@ -407,29 +442,38 @@ def solve_robot(odometry: np.ndarray, sightings: np.ndarray, end_time: float, de
     for i in range(len(times)):
         new, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         if i == 0:
-            motion.append(gtsam.PriorFactorPose2(pose_key(0), current,
+            motion.append(gtsam.PriorFactorPose2(_pose_key(0), current,
                                                  gtsam.noiseModel.Isotropic.Sigma(3, settings["prior_sigma"])))
         else:
             step = gtsam.Pose2(*steps[i - 1])
-            motion.append(gtsam.BetweenFactorPose2(pose_key(i - 1), pose_key(i), step,
+            motion.append(gtsam.BetweenFactorPose2(_pose_key(i - 1), _pose_key(i), step,
                                                    gtsam.noiseModel.Diagonal.Sigmas(step_sigma[i - 1])))
             current = current.compose(step)
         new.add(motion[-1])
-        values.insert(pose_key(i), current)
+        values.insert(_pose_key(i), current)
         for _, subject, rng, bearing in sightings[by_pose[i]:by_pose[i + 1]]:
-            seen.append(gtsam.BearingRangeFactor2D(pose_key(i), landmark_key(subject), gtsam.Rot2(bearing), rng,
+            seen.append(gtsam.BearingRangeFactor2D(_pose_key(i), _landmark_key(subject), gtsam.Rot2(bearing), rng,
                                                    sighting_noise))
             new.add(seen[-1])
             if int(subject) not in placed:
                 placed.append(int(subject))
-                values.insert(landmark_key(subject),
+                values.insert(_landmark_key(subject),
                               current.transformFrom(gtsam.Point2(rng * np.cos(bearing), rng * np.sin(bearing))))
         isam.update(new, values)
         full.push_back(new)
-        current = isam.calculateEstimatePose2(pose_key(i))
-    estimate = isam.calculateEstimate()
-    refined = gtsam.LevenbergMarquardtOptimizer(full, estimate).optimize()
-    solution = refined if full.error(refined) < full.error(estimate) else estimate
+        current = isam.calculateEstimatePose2(_pose_key(i))
+    return full, motion, seen, isam.calculateEstimate()
+
+
+def _reject_misreads(full, solution, factors: tuple, sightings, n_poses: int, sighting_sigma, settings: dict):
+    """Drop the sightings beyond ``REJECTION_GATE`` σ at the solution and solve again, up to
+    ``REJECTION_ROUNDS`` times. ``factors``: the (motion, sighting) factors of ``full``.
+
+    Returns the last factor graph, its solution and which sightings are kept.
+    """
+    import gtsam
+
+    motion, seen = factors
     # Misread barcodes put a sighting metres from its landmark; the Huber kernel only bounds their pull.
     keep = np.ones(len(seen), bool)
     for _ in range(settings["rejection_rounds"]):
@@ -442,25 +486,12 @@ def solve_robot(odometry: np.ndarray, sightings: np.ndarray, end_time: float, de
         for factor in motion + [f for f, k in zip(seen, keep) if k]:
             full.add(factor)
         start = gtsam.Values()
-        for i in range(len(times)):
-            start.insert(pose_key(i), solution.atPose2(pose_key(i)))
+        for i in range(n_poses):
+            start.insert(_pose_key(i), solution.atPose2(_pose_key(i)))
         for subject in np.unique(sightings[keep, 1]):
-            start.insert(landmark_key(subject), solution.atPoint2(landmark_key(subject)))
+            start.insert(_landmark_key(subject), solution.atPoint2(_landmark_key(subject)))
         solution = gtsam.LevenbergMarquardtOptimizer(full, start).optimize()
-    ids = np.unique(sightings[keep, 1]).astype(np.int64)
-    keys = gtsam.KeyVector()
-    for subject in ids:
-        keys.append(landmark_key(subject))
-    # The joint marginal's blocks come in key order, which for one symbol letter is the ids' order.
-    joint = gtsam.Marginals(full, solution).jointMarginalCovariance(keys).fullMatrix()
-    return {
-        "ids": ids,
-        "points": np.array([solution.atPoint2(landmark_key(s)) for s in ids]).reshape(-1, 2),
-        "incremental": np.array([estimate.atPoint2(landmark_key(s)) for s in ids]).reshape(-1, 2),
-        "joint": joint,
-        "poses": len(times),
-        "rejected": int(np.sum(~keep)),
-    }
+    return full, solution, keep
 
 
 def memory():
