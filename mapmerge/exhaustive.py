@@ -22,10 +22,10 @@ landmark pair, ``c = π / ((1 - π) λ)``. So on a grid:
 
 1. rotations of step ``s / R`` (R the largest distance of a p landmark from
    p's centroid), translations on cells ``GRID_STEP · s`` wide;
-2. at each rotation the landmark pairs' translations are counted on cells
-   ``GRID_STEP · s`` wide and convolved with the bump (cut at
-   ``KERNEL_SIGMAS`` s), and the count of q landmarks inside p's hull at
-   every cell is one correlation of two rasters (both by FFT);
+2. at each rotation every landmark pair's translation spreads the bump
+   (cut at ``KERNEL_SIGMAS`` s) over the cells around it, and the q
+   landmarks inside p's hull are counted at every cell, row by row (the
+   hull is convex: each q landmark is inside over one interval of a row);
 3. each rotation's best cell is scored by the exact Λ, and the
    ``GRID_PEAKS`` best are refined by EM (responsibilities, then a weighted
    closed-form fit, ``EM_ROUNDS`` times) and scored again.
@@ -360,14 +360,10 @@ def _grid_peaks(Q, model: Mixture):
     """The ``GRID_PEAKS`` best (θ, t) of the grid, at distinct rotations.
 
     Per rotation, the pair translations are counted on cells ``GRID_STEP·s``
-    wide and convolved with the bump, the count of q landmarks inside p's
-    hull is a correlation of two rasters (both by FFT), and the best cell is
+    wide and spread over the bump's cells, the q landmarks inside p's hull
+    are counted at every cell (``_grid_best_cells``), and the best cell is
     kept; these are ranked by their exact Λ.
     """
-    # Imported here: scipy.signal takes about a second to import, which every
-    # ``import mapmerge`` would pay for this one function.
-    from scipy.signal import fftconvolve
-
     P, s, c, p_shared = model.P, model.s, model.c, model.p_shared
     pm, qm = P.mean(axis=0), Q.mean(axis=0)
     pc, qc = P - pm, Q - qm
@@ -379,28 +375,82 @@ def _grid_peaks(Q, model: Mixture):
     K = int(np.ceil(KERNEL_SIGMAS / GRID_STEP))
     off = h * np.arange(-K, K + 1)
     kernel = np.log1p(c * np.exp(-(off[:, None] ** 2 + off[None, :] ** 2) / (2 * s**2)))
-    # q's landmarks on the grid; p's hull rotated is rasterised per rotation.
     Ka, Kb = int(np.ceil(reach_q / h)), int(np.ceil(reach / h))
     # Translations reach at most reach + reach_q: cells -M..M hold them all.
     M = Ka + Kb
-    side = 2 * M + 1
-    A = np.zeros((2 * Ka + 1, 2 * Ka + 1))
-    np.add.at(A, tuple((np.rint(qc / h).astype(int) + Ka).T), 1.0)
-    grid_b = h * np.stack(np.meshgrid(np.arange(-Kb, Kb + 1), np.arange(-Kb, Kb + 1), indexing="ij"), -1)
+    # q's landmarks on their grid cells, for counting those inside p's hull at a translation.
     hull_c = ConvexHull(pc)
-    log_miss = np.log(1 - p_shared)
-    best_cell = np.zeros((n_theta, 2), dtype=np.int64)
-    for k, theta in enumerate(thetas):
-        cell = np.rint((qc[None, :, :] - rotate(theta, pc)[:, None, :]).reshape(-1, 2) / h).astype(np.int64) + M
-        counts = np.bincount(cell[:, 0] * side + cell[:, 1], minlength=side * side).reshape(side, side)
-        value = fftconvolve(counts, kernel, mode="same")
-        B = inside_hull(hull_c, rotate(-theta, grid_b).reshape(-1, 2)).reshape(grid_b.shape[:2]).astype(float)
-        # n_inside(m) = Σ_u A(u) B(u - m), a correlation: index m + Ka + Kb of the full convolution.
-        conv = np.rint(fftconvolve(A, B[::-1, ::-1], mode="full"))
-        value += log_miss * conv
-        best_cell[k] = np.divmod(int(np.argmax(value)), side)
+    u = np.rint(qc / h).astype(np.int64) + Ka
+    best_cell = _grid_best_cells(pc, qc, thetas, h, M, kernel, np.log(1 - p_shared), hull_c.equations, u, Kb)
     # Back to the maps' own frames: q = R p + t with t = qm + t_centred - R pm.
     ts = qm + (best_cell - M) * h - rotate(thetas, pm[None])[:, 0]
     exact = np.array([model.log_lr(Q, th, t)[0] for th, t in zip(thetas, ts)])
     order = np.argsort(-exact, kind="stable")[:GRID_PEAKS]
     return thetas[order], ts[order]
+
+
+@njit(cache=True)
+def _hull_rows(Kb, h, c, s, equations):
+    """p's centred hull rotated by -θ on the grid of cells (vx, vy), 0..2 Kb each, cell centres
+    ``h (v - Kb)``: the range ``lo[vx] .. hi[vx]`` of vy inside it on each row (empty when lo > hi)."""
+    lo, hi = np.zeros(2 * Kb + 1, dtype=np.int64), np.full(2 * Kb + 1, 2 * Kb, dtype=np.int64)
+    for vx in range(2 * Kb + 1):
+        gx = h * (vx - Kb)
+        for f in range(equations.shape[0]):
+            # The facet's test on the rotated cell centre, e0 (c gx + s gy) + e1 (c gy - s gx) + e2 <= 0,
+            # is linear in gy: a gy + b <= 0.
+            a = equations[f, 0] * s + equations[f, 1] * c
+            b = (equations[f, 0] * c - equations[f, 1] * s) * gx + equations[f, 2]
+            if a > 0:
+                hi[vx] = min(hi[vx], np.int64(np.floor(Kb + (-b / a) / h)))
+            elif a < 0:
+                lo[vx] = max(lo[vx], np.int64(np.ceil(Kb + (-b / a) / h)))
+            elif b > 0:
+                lo[vx], hi[vx] = 1, 0
+    return lo, hi
+
+
+@njit(cache=True)
+def _grid_best_cells(pc, qc, thetas, h, M, kernel, log_miss, equations, u, Kb):
+    """Per rotation, the cell of the largest ``Σ bump + log(1 - π) · n_inside`` (the first of ties).
+
+    The bump sum is spread from each landmark pair's translation cell over the kernel's cells. q landmark
+    j (on its grid cell ``u[j]``) lies inside p's hull at translation cells (mx, my) that form, row by row,
+    one interval of my (the hull is convex, ``_hull_rows``): counted by differences along each row.
+    """
+    side, K = 2 * M + 1, (kernel.shape[0] - 1) // 2
+    value = np.empty((side, side))
+    count = np.empty((side, side + 1), dtype=np.int64)
+    best_cell = np.zeros((len(thetas), 2), dtype=np.int64)
+    for a in range(len(thetas)):
+        c, s = np.cos(thetas[a]), np.sin(thetas[a])
+        value[:] = 0.0
+        count[:] = 0
+        for i in range(pc.shape[0]):
+            rx, ry = c * pc[i, 0] - s * pc[i, 1], s * pc[i, 0] + c * pc[i, 1]
+            for j in range(qc.shape[0]):
+                cx = np.int64(np.rint((qc[j, 0] - rx) / h)) + M
+                cy = np.int64(np.rint((qc[j, 1] - ry) / h)) + M
+                for dx in range(max(-K, -cx), min(K, side - 1 - cx) + 1):
+                    for dy in range(max(-K, -cy), min(K, side - 1 - cy) + 1):
+                        value[cx + dx, cy + dy] += kernel[dx + K, dy + K]
+        lo, hi = _hull_rows(Kb, h, c, s, equations)
+        for j in range(u.shape[0]):
+            # Cell m puts q_j at hull cell v = 2 Kb + u_j - m.
+            for vx in range(2 * Kb + 1):
+                mx = 2 * Kb + u[j, 0] - vx
+                if 0 <= mx < side and lo[vx] <= hi[vx]:
+                    first, last = max(2 * Kb + u[j, 1] - hi[vx], 0), min(2 * Kb + u[j, 1] - lo[vx], side - 1)
+                    if first <= last:
+                        count[mx, first] += 1
+                        count[mx, last + 1] -= 1
+        best, arg = -np.inf, 0
+        for mx in range(side):
+            inside = 0
+            for my in range(side):
+                inside += count[mx, my]
+                v = value[mx, my] + log_miss * inside
+                if v > best:
+                    best, arg = v, mx * side + my
+        best_cell[a, 0], best_cell[a, 1] = arg // side, arg % side
+    return best_cell

@@ -155,3 +155,37 @@ def test_detector_refuses_a_grid_beyond_its_budget(scale, sigma):
     sc = mm.simulate.make_pair(20, 0.75, 10, rng=1)
     with pytest.raises(ValueError, match=r"grid cells .* per axis .* sigma and both maps in the same units"):
         exhaustive.max_log_lr(sc.p, sc.q * scale, sigma or sc.sigma, 0.9, 1.0)
+
+
+@pytest.mark.parametrize("n, snr, unrelated", [(10, 20.0, False), (60, 15.0, True)])
+def test_grid_cells_are_the_argmax_of_the_convolved_votes_and_hull_counts(n, snr, unrelated):
+    """The grid's best cell per rotation against the textbook form: the pair votes convolved with the
+    bump, plus log(1 - π) times the q landmarks inside p's hull (a correlation of two rasters), by FFT."""
+    from scipy.signal import fftconvolve
+
+    from mapmerge.alignment import rotate
+
+    sc = mm.simulate.make_pair(n, 0.75, snr, rng=1, unrelated=unrelated)
+    s = np.sqrt(2) * sc.sigma
+    c, p_shared = exhaustive.bump_height(sc.density, 1.0, s, 0.9), 0.9
+    pc, qc = sc.p - sc.p.mean(0), sc.q - sc.q.mean(0)
+    h, K = exhaustive.GRID_STEP * s, int(np.ceil(exhaustive.KERNEL_SIGMAS / exhaustive.GRID_STEP))
+    off = h * np.arange(-K, K + 1)
+    kernel = np.log1p(c * np.exp(-(off[:, None] ** 2 + off[None, :] ** 2) / (2 * s**2)))
+    Ka = int(np.ceil(np.sqrt(np.max(np.sum(qc**2, 1))) / h))
+    Kb = int(np.ceil(np.sqrt(np.max(np.sum(pc**2, 1))) / h))
+    M, hull = Ka + Kb, ConvexHull(pc)
+    side = 2 * M + 1
+    u = np.rint(qc / h).astype(np.int64) + Ka
+    thetas = np.linspace(0, 2 * np.pi, 12, endpoint=False) + 0.1
+    cells = exhaustive._grid_best_cells(pc, qc, thetas, h, M, kernel, np.log(1 - p_shared), hull.equations, u, Kb)
+    A = np.zeros((2 * Ka + 1, 2 * Ka + 1))
+    np.add.at(A, tuple(u.T), 1.0)
+    grid_b = h * np.stack(np.meshgrid(np.arange(-Kb, Kb + 1), np.arange(-Kb, Kb + 1), indexing="ij"), -1)
+    for theta, cell in zip(thetas, cells):
+        votes = np.rint((qc[None] - rotate(theta, pc)[:, None]).reshape(-1, 2) / h).astype(np.int64) + M
+        counts = np.bincount(votes[:, 0] * side + votes[:, 1], minlength=side * side).reshape(side, side)
+        B = exhaustive.inside_hull(hull, rotate(-theta, grid_b).reshape(-1, 2)).reshape(grid_b.shape[:2])
+        value = (fftconvolve(counts, kernel, mode="same")
+                 + np.log(1 - p_shared) * np.rint(fftconvolve(A, B[::-1, ::-1].astype(float), mode="full")))
+        assert value[tuple(cell)] == pytest.approx(value.max(), rel=1e-9, abs=1e-9)
