@@ -44,7 +44,7 @@ from scipy.spatial import ConvexHull
 
 from ._validation import check_points, check_sigma
 from .alignment import rotate
-from .neighbours import CellGrid, cell_grid, cell_span, count_within, njit
+from .neighbours import CellGrid, cell_grid, count_within, njit, pairs_within
 
 #: Translation cells, in units of s.
 GRID_STEP = 0.5
@@ -229,7 +229,7 @@ class Mixture:
         g = np.log1p(self.c * bump_sums(x, s, radius, *self.grid.arrays()))
         # A node lies in the discs of `cover` landmarks: its weight is shared among them (a partition of
         # unity over every landmark's disc, so a subsample of centres, scaled up, is unbiased).
-        cover = count_within(x, *self.grid.arrays(), radius * (1 + 1e-9))
+        cover = count_within(x, self.grid, radius * (1 + 1e-9))
         weight = weight / (cover * hull.volume)
         # Any λ gives a bound: a coarse grid only loosens the best one slightly.
         lam = np.geomspace(0.02, 20.0, CHERNOFF_POINTS)
@@ -276,17 +276,11 @@ def _mapped_inside(Q, theta, tx, ty, equations):
 @njit(cache=True)
 def bump_sums(x, s, radius, points, index, keys, ox, oy, h, nx, ny):
     """Σ_i exp(-|x_j - p_i|² / 2s²) over the grid's points within ``radius`` of each x_j."""
+    start, _, d2 = pairs_within(x, points, index, keys, ox, oy, h, nx, ny, radius)
     out = np.zeros(x.shape[0])
-    r2, two_s2 = radius * radius, 2 * s * s
     for j in range(x.shape[0]):
-        for a in range(-1, 2):
-            for b in range(-1, 2):
-                lo, hi = cell_span(x[j, 0], x[j, 1], keys, ox, oy, h, nx, ny, a, b)
-                for k in range(lo, hi):
-                    dx, dy = x[j, 0] - points[k, 0], x[j, 1] - points[k, 1]
-                    d2 = dx * dx + dy * dy
-                    if d2 <= r2:
-                        out[j] += np.exp(-d2 / two_s2)
+        for n in range(start[j], start[j + 1]):
+            out[j] += np.exp(-d2[n] / (2 * s * s))
     return out
 
 
@@ -302,43 +296,29 @@ def _mapped_log_terms(Q, theta, tx, ty, equations, s, c, radius, points, index, 
 def _em_rounds(Q, theta, tx, ty, equations, s, c, radius, rounds, points, index, keys, ox, oy, h, nx, ny):
     """``Mixture.em``'s rounds: each pair (i, j) within ``radius`` weighs w_ij = c N_ij / (1 + c Σ_i N_ij)
     in the weighted closed-form fit of p_i onto q_j."""
-    r2, two_s2 = radius * radius, 2 * s * s
     for _ in range(rounds):
         x, js = _mapped_inside(Q, theta, tx, ty, equations)
-        norm = 1 + c * bump_sums(x, s, radius, points, index, keys, ox, oy, h, nx, ny)
-        # Two passes over the pairs: the weighted means, then the centred cross and dot sums.
-        total, n_pairs, ma0, ma1, mb0, mb1 = 0.0, 0, 0.0, 0.0, 0.0, 0.0
-        for u in range(x.shape[0]):
-            q0, q1 = Q[js[u], 0], Q[js[u], 1]
-            for a in range(-1, 2):
-                for b in range(-1, 2):
-                    lo, hi = cell_span(x[u, 0], x[u, 1], keys, ox, oy, h, nx, ny, a, b)
-                    for k in range(lo, hi):
-                        dx, dy = x[u, 0] - points[k, 0], x[u, 1] - points[k, 1]
-                        d2 = dx * dx + dy * dy
-                        if d2 <= r2:
-                            w = c * np.exp(-d2 / two_s2) / norm[u]
-                            total += w
-                            n_pairs += 1
-                            ma0, ma1 = ma0 + w * points[k, 0], ma1 + w * points[k, 1]
-                            mb0, mb1 = mb0 + w * q0, mb1 + w * q1
-        if n_pairs < 2:
+        start, k, d2 = pairs_within(x, points, index, keys, ox, oy, h, nx, ny, radius)
+        if len(k) < 2:
             break
+        w = c * np.exp(-d2 / (2 * s * s))
+        for u in range(x.shape[0]):
+            w[start[u]:start[u + 1]] /= 1 + np.sum(w[start[u]:start[u + 1]])
+        # The weighted means, then the centred cross and dot sums.
+        total, ma0, ma1, mb0, mb1 = 0.0, 0.0, 0.0, 0.0, 0.0
+        for u in range(x.shape[0]):
+            for n in range(start[u], start[u + 1]):
+                total += w[n]
+                ma0, ma1 = ma0 + w[n] * points[k[n], 0], ma1 + w[n] * points[k[n], 1]
+                mb0, mb1 = mb0 + w[n] * Q[js[u], 0], mb1 + w[n] * Q[js[u], 1]
         ma0, ma1, mb0, mb1 = ma0 / total, ma1 / total, mb0 / total, mb1 / total
         cross, dot = 0.0, 0.0
         for u in range(x.shape[0]):
             q0, q1 = Q[js[u], 0] - mb0, Q[js[u], 1] - mb1
-            for a in range(-1, 2):
-                for b in range(-1, 2):
-                    lo, hi = cell_span(x[u, 0], x[u, 1], keys, ox, oy, h, nx, ny, a, b)
-                    for k in range(lo, hi):
-                        dx, dy = x[u, 0] - points[k, 0], x[u, 1] - points[k, 1]
-                        d2 = dx * dx + dy * dy
-                        if d2 <= r2:
-                            w = c * np.exp(-d2 / two_s2) / norm[u]
-                            p0, p1 = points[k, 0] - ma0, points[k, 1] - ma1
-                            cross += w * (p0 * q1 - p1 * q0)
-                            dot += w * (p0 * q0 + p1 * q1)
+            for n in range(start[u], start[u + 1]):
+                p0, p1 = points[k[n], 0] - ma0, points[k[n], 1] - ma1
+                cross += w[n] * (p0 * q1 - p1 * q0)
+                dot += w[n] * (p0 * q0 + p1 * q1)
         new = np.arctan2(cross, dot)
         cn, sn = np.cos(new), np.sin(new)
         new_tx, new_ty = mb0 - (cn * ma0 - sn * ma1), mb1 - (sn * ma0 + cn * ma1)

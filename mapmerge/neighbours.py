@@ -92,37 +92,60 @@ def cell_span(x, y, keys, ox, oy, h, nx, ny, ix_off, iy_off):
 
 
 @njit(cache=True)
-def count_within(x, points, index, keys, ox, oy, h, nx, ny, radius):
-    """How many points lie within ``radius`` (at most the grid's h) of each row of x."""
-    out = np.zeros(x.shape[0], dtype=np.int64)
+def pairs_within(x, points, index, keys, ox, oy, h, nx, ny, radius):
+    """Every (row of x, point) pair within ``radius`` (at most the grid's h), grouped by row of x.
+
+    Returns
+    -------
+    start : (m + 1,) int64 ndarray
+        Row j's pairs are ``start[j]:start[j + 1]``.
+    k : int64 ndarray
+        Each pair's point, as its position in the grid's sorted ``points``.
+    d2 : ndarray
+        Each pair's squared distance.
+    """
     r2 = radius * radius
-    for j in range(x.shape[0]):
-        for a in range(-1, 2):
-            for b in range(-1, 2):
-                lo, hi = cell_span(x[j, 0], x[j, 1], keys, ox, oy, h, nx, ny, a, b)
-                for k in range(lo, hi):
-                    dx, dy = x[j, 0] - points[k, 0], x[j, 1] - points[k, 1]
-                    if dx * dx + dy * dy <= r2:
-                        out[j] += 1
-    return out
+    start = np.zeros(x.shape[0] + 1, dtype=np.int64)
+    k, d2 = np.empty(0, dtype=np.int64), np.empty(0)
+    # Counted first, then filled: two passes over the cells, no growing buffers.
+    for fill in range(2):
+        if fill:
+            k, d2 = np.empty(start[-1], dtype=np.int64), np.empty(start[-1])
+        for j in range(x.shape[0]):
+            n = start[j]
+            for a in range(-1, 2):
+                for b in range(-1, 2):
+                    lo, hi = cell_span(x[j, 0], x[j, 1], keys, ox, oy, h, nx, ny, a, b)
+                    for c in range(lo, hi):
+                        dx, dy = x[j, 0] - points[c, 0], x[j, 1] - points[c, 1]
+                        e = dx * dx + dy * dy
+                        if e <= r2:
+                            if fill:
+                                k[n], d2[n] = c, e
+                            n += 1
+            if not fill:
+                start[j + 1] = n
+    return start, k, d2
+
+
+def count_within(x, grid: CellGrid, radius: float) -> np.ndarray:
+    """How many of the grid's points lie within ``radius`` (at most its h) of each row of x."""
+    return np.diff(pairs_within(x, *grid.arrays(), radius)[0])
 
 
 @njit(cache=True)
 def nearest_within(x, points, index, keys, ox, oy, h, nx, ny, bound):
     """Each row of x's nearest point closer than ``bound`` (at most the grid's h): its input index and
     distance, or -1 and inf. Ties go to the smaller input index."""
+    start, k, d2 = pairs_within(x, points, index, keys, ox, oy, h, nx, ny, bound)
     near = np.full(x.shape[0], -1, dtype=np.int64)
     dist = np.full(x.shape[0], np.inf)
     for j in range(x.shape[0]):
         best, arg = np.inf, -1
-        for a in range(-1, 2):
-            for b in range(-1, 2):
-                lo, hi = cell_span(x[j, 0], x[j, 1], keys, ox, oy, h, nx, ny, a, b)
-                for k in range(lo, hi):
-                    dx, dy = x[j, 0] - points[k, 0], x[j, 1] - points[k, 1]
-                    d = np.sqrt(dx * dx + dy * dy)
-                    if d < best or (d == best and index[k] < arg):
-                        best, arg = d, index[k]
+        for n in range(start[j], start[j + 1]):
+            d = np.sqrt(d2[n])
+            if d < best or (d == best and index[k[n]] < arg):
+                best, arg = d, index[k[n]]
         if best < bound:
             near[j], dist[j] = arg, best
     return near, dist

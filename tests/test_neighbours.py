@@ -20,7 +20,7 @@ def test_grid_counts_and_nearest_neighbours_are_the_k_d_trees(rng, scale):
         # Points on the radius itself may fall either side of it by rounding: compare off the boundary.
         d = np.sqrt(((x[:, None] - P[None]) ** 2).sum(-1))
         clear = np.all(np.abs(d - radius) > 1e-9 * radius, axis=1)
-        count = neighbours.count_within(x, *grid.arrays(), radius)
+        count = neighbours.count_within(x, grid, radius)
         np.testing.assert_array_equal(count[clear], tree.query_ball_point(x, radius, return_length=True)[clear])
         near, dist = neighbours.nearest_within(x, *grid.arrays(), radius)
         t_dist, t_near = tree.query(x, distance_upper_bound=radius)
@@ -34,7 +34,7 @@ def test_grid_of_points_spread_over_any_extent_keeps_its_keys_in_range():
     P = np.array([[0.0, 0.0], [1e300, 1.0], [-1e300, 5.0]])
     grid = neighbours.cell_grid(P, 1e-12)
     assert grid.nx <= neighbours.MAX_CELLS_PER_AXIS and grid.ny <= neighbours.MAX_CELLS_PER_AXIS
-    assert neighbours.count_within(P, *grid.arrays(), 1e-12).tolist() == [1, 1, 1]
+    assert neighbours.count_within(P, grid, 1e-12).tolist() == [1, 1, 1]
 
 
 def test_compiled_mixture_kernels_equal_their_python_source():
