@@ -152,7 +152,20 @@ def paired_transforms(coords_p, coords_q):
     cp = np.asarray(coords_p, dtype=float)
     cq = np.asarray(coords_q, dtype=float)
     M, n = cp.shape[:2]
-    return fit_transforms(np.repeat(np.arange(M), n), cp.reshape(-1, 2), cq.reshape(-1, 2), M)
+    if M <= PAIRED_CHUNK:
+        return fit_transforms(np.repeat(np.arange(M), n), cp.reshape(-1, 2), cq.reshape(-1, 2), M)
+    # Each row's fit is independent of the others (its own sums, in vertex order), so blocks of rows give
+    # the same bits while the temporaries, about 40 doubles per point, stay at one block's size: at 10^6
+    # landmarks a map pair has 10^7 candidate triangle pairs.
+    theta, t, cost = np.empty(M), np.empty((M, 2)), np.empty(M)
+    for a in range(0, M, PAIRED_CHUNK):
+        b = min(a + PAIRED_CHUNK, M)
+        theta[a:b], t[a:b], cost[a:b] = paired_transforms(cp[a:b], cq[a:b])
+    return theta, t, cost
+
+
+#: Rows of ``paired_transforms`` fitted at once.
+PAIRED_CHUNK = 1 << 17
 
 
 @dataclass(frozen=True)

@@ -112,7 +112,7 @@ def _consensus(vp, vq, P, Q, scores, sigma):
     and recounted with the refit's much smaller uncertainty, which is what
     separates the true group from loose chance groups.
     """
-    cp, cq = P[vp], Q[vq]
+    cp, cq = np.take(P, vp, axis=0), np.take(Q, vq, axis=0)  # several times faster than P[vp] at 10^7 rows
     gate = GATE_6
     # Hypotheses are counted on a pool only: large maps have far more
     # candidates than any transform needs, and the landmark association that

@@ -23,7 +23,7 @@ from scipy.special import chdtri
 
 from .assignment import assign_sparse, lp_weight
 from .statistic import log_lr_from_cost, min_cost, pairwise_log_lr_blocks
-from .triangles import PARALLEL_MIN_LANDMARKS, TriangleBatch, triangulate_batches
+from .triangles import PARALLEL_MIN_LANDMARKS, TriangleBatch, triangulate_batches, z_order
 
 #: Degrees of freedom of -2 log Λ for a true triangle pair (2n - 3, n = 3).
 TRIANGLE_DOF = 3
@@ -106,10 +106,15 @@ def candidate_pairs(coords_p, coords_q, sigma: float, log_tau: float, k: int):
     """
     tree = cKDTree(side_features(coords_q))
     k = min(k, len(coords_q))
-    workers = -1 if len(coords_p) >= 2 * PARALLEL_MIN_LANDMARKS else 1  # a map has about 2n triangles
-    dist, idx = tree.query(side_features(coords_p), k=k, distance_upper_bound=gate_radius(sigma, log_tau),
-                           workers=workers)
-    dist, idx = dist.reshape(len(coords_p), k), idx.reshape(len(coords_p), k)
+    large = len(coords_p) >= 2 * PARALLEL_MIN_LANDMARKS  # a map has about 2n triangles
+    features = side_features(coords_p)
+    # Queried along a Z-order curve of the features, neighbouring queries walk the same tree nodes while
+    # they are in cache (a quarter of the CPU at 2·10^6 triangles); each row's answer is its own.
+    order = z_order(features) if large else slice(None)
+    dist, idx = np.empty((len(coords_p), k)), np.empty((len(coords_p), k), dtype=np.intp)
+    found = tree.query(features[order], k=k, distance_upper_bound=gate_radius(sigma, log_tau),
+                       workers=-1 if large else 1)
+    dist[order], idx[order] = (a.reshape(len(coords_p), k) for a in found)
     # Sorted within each row (neighbours the gate left out last): rows come in order, so pairs are by (p, q).
     idx = np.where(np.isfinite(dist), idx, len(coords_q))
     idx.sort(axis=1)
@@ -260,8 +265,9 @@ def _sparse_pairs(tri_p, tri_q, vp, vq, b, sigma, options: _SparseOptions):
     objective, cyclic, log_tau = options.objective, options.cyclic, options.log_tau
     P, Q = tri_p.maps[b], tri_q.maps[b]
     vp, vq = vp[tri_p.offsets[b]:tri_p.offsets[b + 1]], vq[tri_q.offsets[b]:tri_q.offsets[b + 1]]
-    cand = candidate_pairs(P[vp], Q[vq], sigma, log_tau, SPARSE_NEIGHBOURS)
-    cost, shift = min_cost(P[vp], Q[vq], cyclic, pairs=(cand[:, 0], cand[:, 1]))
+    cp, cq = np.take(P, vp, axis=0), np.take(Q, vq, axis=0)  # np.take: several times faster than P[vp]
+    cand = candidate_pairs(cp, cq, sigma, log_tau, SPARSE_NEIGHBOURS)
+    cost, shift = min_cost(cp, cq, cyclic, pairs=(cand[:, 0], cand[:, 1]))
     score = log_lr_from_cost(cost, sigma)
     if options.solve_lp:
         chosen = assign_sparse(score, cand, (len(vp), len(vq)), objective)

@@ -31,6 +31,13 @@ from ._validation import check_points
 #: Smaller maps stay in one thread: the harness already runs one process
 #: per core, and a thread costs more than a small Delaunay call.
 PARALLEL_MIN_LANDMARKS = 20_000
+#: Maps of at least this many landmarks are handed to Qhull sorted along a
+#: Z-order curve (``z_order``), so that it inserts neighbours one after
+#: another and works in cache: 22 s -> 16 s of CPU at 10^6 landmarks (two
+#: engineers' jobs sharing the machine). The triangles are the same, their
+#: order is not; below this, up to the 10^5-landmark maps of every reported
+#: result, Qhull gets the map as given and its order is kept.
+SORTED_DELAUNAY_MIN_LANDMARKS = 200_000
 
 
 @dataclass(frozen=True)
@@ -93,7 +100,8 @@ class TriangleBatch:
 
     def coords(self, vertices: np.ndarray | None = None) -> np.ndarray:
         """Vertex coordinates (S, 3, 2), in the order of ``vertices`` (default Groth)."""
-        return self.maps.reshape(-1, 2)[self.flat_vertices(vertices)]
+        # np.take, not fancy indexing: rows of two floats gather several times faster (a copy, the same bits).
+        return np.take(self.maps.reshape(-1, 2), self.flat_vertices(vertices), axis=0)
 
     def ccw_vertices(self) -> np.ndarray:
         """Vertices put counter-clockwise (``ccw_order``), (S, 3)."""
@@ -115,7 +123,7 @@ class TriangleBatch:
 
     def __getitem__(self, b: int) -> Triangles:
         vertices = self.vertices[self.offsets[b]:self.offsets[b + 1]]
-        return Triangles(vertices=vertices, coords=self.maps[b][vertices])
+        return Triangles(vertices=vertices, coords=np.take(self.maps[b], vertices, axis=0))
 
 
 def groth_order(coords: np.ndarray) -> np.ndarray:
@@ -191,11 +199,11 @@ def triangulate_batch(maps: np.ndarray) -> TriangleBatch:
     -------
     TriangleBatch
     """
-    simplices = [Delaunay(pts).simplices for pts in maps]
+    simplices = [delaunay_simplices(pts) for pts in maps]
     if len(simplices) == 1:  # one map: no bookkeeping across maps
         flat = simplices[0].astype(np.intp)
         trial, offsets = np.zeros(len(flat), np.intp), np.array([0, len(flat)])
-        perm = groth_order(maps[0][flat])
+        perm = groth_order(np.take(maps[0], flat, axis=0))
     else:
         count = np.array([len(s) for s in simplices], dtype=np.intp)
         offsets = np.concatenate(([0], np.cumsum(count)))
@@ -216,6 +224,28 @@ def triangulate_batches(*batches: np.ndarray) -> tuple[TriangleBatch, ...]:
         return tuple(triangulate_batch(b) for b in batches)
     with ThreadPoolExecutor(len(batches)) as pool:
         return tuple(pool.map(triangulate_batch, batches))
+
+
+def delaunay_simplices(points: np.ndarray) -> np.ndarray:
+    """Landmark indices (T, 3) of the Delaunay triangles of one map (sorted first when large,
+    ``SORTED_DELAUNAY_MIN_LANDMARKS``)."""
+    if len(points) < SORTED_DELAUNAY_MIN_LANDMARKS:
+        return Delaunay(points).simplices
+    order = z_order(points)
+    return order[Delaunay(points[order]).simplices]
+
+
+def z_order(points: np.ndarray, bits: int = 16) -> np.ndarray:
+    """The permutation (n,) sorting points (n, d), d <= 3, along a Z-order (Morton) curve over their
+    bounding box, cells ``2**-bits`` of its sides wide (ties in index order)."""
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    cell = ((points - lo) / np.where(hi > lo, hi - lo, 1.0) * (2**bits - 1)).astype(np.int64)
+    d = points.shape[1]
+    key = np.zeros(len(points), np.int64)
+    for b in range(bits):  # interleave the bits of the cell indices
+        for axis in range(d):
+            key |= ((cell[:, axis] >> b) & 1) << (d * b + axis)
+    return np.argsort(key, kind="stable")
 
 
 def delaunay_edges(points: np.ndarray) -> np.ndarray:
