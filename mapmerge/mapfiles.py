@@ -121,8 +121,8 @@ def _file_columns(source) -> tuple[dict, str]:
             reader = csv.reader(fh, delimiter=sep)
             rows = []
             for row in reader:
-                if not row:
-                    continue  # a blank line
+                if not row or (len(row) == 1 and not row[0].strip()):
+                    continue  # a blank line (or one of spaces only, as pandas reads it)
                 if rows and len(row) > len(rows[0]):
                     raise MapFileError(f"{name}: not a CSV/TSV table (line {reader.line_num} has {len(row)} "
                                        f"fields, the header {len(rows[0])})")
