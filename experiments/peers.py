@@ -1,16 +1,21 @@
 """The outside peers (CPD, CLIPPER, TEASER++) against our methods on the same map pairs (results/peers/).
 
-    python -m experiments.peers [--out results/peers]          # the comparison, then its tables
+    python -m experiments.peers [--layout strip|interleaved] [--methods M ...] [--processes 1]
+    python -m experiments.peers --scaling [--sizes 100 1000 10000] [--time-limit 120]   # time per merge
     python -m experiments.peers --calibrate [--out results/peers]   # the peers' acceptance thresholds
 
-Every method sees the same pairs: ``make_pair(n, 0.75, snr, rng=seed)``
-(strip layout) with seeds 0, 1, ... for the related pairs and the same seeds
-with ``unrelated=True`` for the unrelated ones, at n = 10 and 20 landmarks
-(15, 20, 30 dB) and n = 100 (10, 15, 20, 30 dB). Methods: consensus, the
-paper, Groth's voting, astroalign (when installed) and the peers that are
-installed (``pip install 'mapmerge[peers]'``; ``tools/build_peers.sh``).
-``PAIRS`` related and as many unrelated pairs per cell, fewer for the slow
-ones (``SLOW_PAIRS``). Writes ``peers.csv`` / ``peers.md``: transform found
+Every method sees the same pairs: ``make_pair(n, 0.75, snr, rng=seed,
+layout=layout)`` with seeds 0, 1, ... for the related pairs and the same
+seeds with ``unrelated=True`` for the unrelated ones. Strip layout: n = 10
+and 20 landmarks (15, 20, 30 dB) and n = 100 (10, 15, 20, 30 dB);
+interleaved layout: n = 10 and 20 (20, 30 dB) and n = 100 (10, 15, 20,
+30 dB). Methods: consensus, the paper, Groth's voting, astroalign (when
+installed) and the peers that are installed (``pip install
+'mapmerge[peers]'``; ``tools/build_peers.sh``), or those named by
+``--methods``. ``PAIRS`` related and as many unrelated pairs per cell, fewer
+for the slow ones (``SLOW_PAIRS``). A run computes one layout's cells and
+replaces that layout's rows of ``peers.csv``, keeping the other layout's;
+``peers.md`` is rewritten from all of them. ``peers.csv`` holds: transform found
 (``metrics.transform_found``'s rule) with its 95 % Wilson interval, false
 merges on the unrelated pairs, the median seconds per merge (one pair at a
 time, on the first ``TIMED_PAIRS`` related pairs), and beside them two
@@ -18,6 +23,14 @@ limits: the fit knowing every correspondence
 (``metrics.correspondence_oracle_transform``) on the same pairs, and the
 exhaustive ML detector's found rate where results/detector/ has the cell
 (its own pairs and threshold; see that directory).
+
+``--scaling`` times one merge at a time on the first ``SCALING_PAIRS``
+related pairs at 30 dB (strip layout) of ``SCALING_SIZES`` landmarks, for
+consensus and the installed peers. Each merge runs in a child process
+that is stopped past ``--time-limit`` seconds or when it needs more than
+``SCALING_MEMORY_GB`` of memory; after such a stop the method is not run at
+that size's remaining pairs nor at larger sizes. Writes ``scaling.csv`` /
+``scaling.md``.
 
 ``--calibrate`` draws ``CALIBRATION_PAIRS`` unrelated pairs at 30 dB per map
 size from seeds ``CALIBRATION_SEED`` + i (disjoint from the reported ones),
@@ -47,8 +60,10 @@ import mapmerge as mm
 from experiments.intervals import wilson
 from mapmerge.baselines import clipper, cpd, teaser
 
-#: (landmarks per map, SNR in dB) of every cell; overlap 0.75, strip layout.
-CELLS = [(10, 15), (10, 20), (10, 30), (20, 15), (20, 20), (20, 30), (100, 10), (100, 15), (100, 20), (100, 30)]
+#: (landmarks per map, SNR in dB) of every cell per layout; overlap 0.75.
+CELLS = {"strip": [(10, 15), (10, 20), (10, 30), (20, 15), (20, 20), (20, 30),
+                   (100, 10), (100, 15), (100, 20), (100, 30)],
+         "interleaved": [(10, 20), (10, 30), (20, 20), (20, 30), (100, 10), (100, 15), (100, 20), (100, 30)]}
 OVERLAP = 0.75
 #: Related (and as many unrelated) pairs per cell.
 PAIRS = 200
@@ -68,6 +83,11 @@ PEER_PAIRS = {
     "clipper": lambda sc: clipper.clipper_pairs(sc.p, sc.q, sc.sigma),
     "teaser": lambda sc: teaser.teaser_pairs(sc.p, sc.q, sc.sigma),
 }
+#: Time per merge: map sizes, related pairs per size (30 dB, strip layout), child memory cap.
+SCALING_SIZES = (100, 1000, 10000)
+SCALING_PAIRS = 3
+SCALING_SNR = 30.0
+SCALING_MEMORY_GB = 8
 PEER_MODULES = {"cpd": "pycpd", "clipper": "clipperpy", "teaser": "teaserpp_python", "astroalign": "astroalign"}
 
 
@@ -79,12 +99,11 @@ def available_methods() -> list[str]:
 
 def run_cell(job) -> dict:
     """One method on one cell: found, false merges, time."""
-    method, n, snr = job
-    count = SLOW_PAIRS.get((method, n), PAIRS)
+    method, layout, n, snr, count = job
     seeds = list(range(count))
-    out = {"method": method, "n_landmarks": n, "snr_db": snr, "pairs": count}
+    out = {"method": method, "layout": layout, "n_landmarks": n, "snr_db": snr, "pairs": count}
     for unrelated in (False, True):
-        scen = mm.simulate.make_pairs(n, OVERLAP, snr, seeds, unrelated=unrelated)
+        scen = mm.simulate.make_pairs(n, OVERLAP, snr, seeds, unrelated=unrelated, layout=layout)
         merged = mm.merge_batch(scen.p, scen.q, scen.sigma, method=method, rng=0)
         err = mm.metrics.map_errors_batch(scen, merged)
         if unrelated:
@@ -93,7 +112,7 @@ def run_cell(job) -> dict:
             out["found"] = int(err["transform_found"].sum())
     times = []
     for seed in range(TIMED_PAIRS):
-        sc = mm.simulate.make_pair(n, OVERLAP, snr, rng=seed)
+        sc = mm.simulate.make_pair(n, OVERLAP, snr, rng=seed, layout=layout)
         t0 = time.perf_counter()
         mm.merge_maps(sc.p, sc.q, sc.sigma, method=method, rng=0)
         times.append(time.perf_counter() - t0)
@@ -101,70 +120,97 @@ def run_cell(job) -> dict:
     return out
 
 
-def oracle_found(n: int, snr: float) -> int:
-    """Related pairs of a cell whose fit knowing every correspondence counts as found."""
+def oracle_found(layout: str, n: int, snr: float, count: int) -> int:
+    """Related pairs of a cell (the first ``count``) whose fit knowing every correspondence counts as found."""
     hits = 0
-    for seed in range(PAIRS):
-        sc = mm.simulate.make_pair(n, OVERLAP, snr, rng=seed)
+    for seed in range(count):
+        sc = mm.simulate.make_pair(n, OVERLAP, snr, rng=seed, layout=layout)
         fit = mm.metrics.correspondence_oracle_transform(sc)
         hits += mm.metrics.transform_found(sc, fit.theta, fit.t)
     return hits
 
 
 def detector_limits() -> pd.DataFrame:
-    """The exhaustive detector's found rate per (n, SNR) from results/detector/ (strip layout), if present."""
+    """The exhaustive detector's found rate per (layout, n, SNR) from results/detector/, if present."""
+    cols = ["layout", "n_landmarks", "snr_db", "detector_found", "detector_null_pairs"]
     frames = [pd.read_csv(p) for p in (Path("results/detector/limit.csv"), Path("results/detector/small/limit.csv"))
               if p.exists()]
     if not frames:
-        return pd.DataFrame(columns=["n_landmarks", "snr_db", "detector_found", "detector_null_pairs"])
+        return pd.DataFrame(columns=cols)
     lim = pd.concat(frames)
-    lim = lim[lim["layout"] == "strip"]
-    return lim.rename(columns={"found_rate": "detector_found", "null_pairs": "detector_null_pairs"})[
-        ["n_landmarks", "snr_db", "detector_found", "detector_null_pairs"]]
+    return lim.rename(columns={"found_rate": "detector_found", "null_pairs": "detector_null_pairs"})[cols]
 
 
-def compare(out: Path, processes: int = 2) -> pd.DataFrame:
-    """Every available method on every cell; writes peers.csv / peers.md."""
-    methods = available_methods()
-    jobs = [(m, n, snr) for n, snr in CELLS for m in methods if SLOW_PAIRS.get((m, n), PAIRS)]
-    # Slowest first so that the two workers finish together.
-    jobs.sort(key=lambda j: -SLOW_PAIRS.get((j[0], j[1]), PAIRS) * j[1] ** 2)
+def compare(out: Path, processes: int = 2, layout: str = "strip", methods=None, pairs: int = PAIRS) -> pd.DataFrame:
+    """``methods`` (default: every available one) on a layout's cells; updates peers.csv / peers.md."""
+    if layout not in CELLS:
+        raise ValueError(f"layout must be one of {list(CELLS)}, got {layout!r}")
+    methods = list(methods or available_methods())
+    cells = CELLS[layout]
+    counts = {(m, n): min(SLOW_PAIRS.get((m, n), pairs), pairs) for m in methods for n, _ in cells}
+    jobs = [(m, layout, n, snr, counts[m, n]) for n, snr in cells for m in methods if counts[m, n]]
+    # Slowest first so that the workers finish together.
+    jobs.sort(key=lambda j: -j[4] * j[2] ** 2)
+    oracle_jobs = [(layout, n, snr, pairs) for n, snr in cells]
     rows = []
-    with Pool(processes) as pool:
-        for row in pool.imap_unordered(run_cell, jobs):
+    if processes == 1:
+        for row in map(run_cell, jobs):
             rows.append(row)
             print(f"{len(rows)}/{len(jobs)} {row}", flush=True)
-        oracle = dict(zip(CELLS, pool.starmap(oracle_found, CELLS)))
+        oracle = dict(zip(cells, (oracle_found(*j) for j in oracle_jobs)))
+    else:
+        with Pool(processes) as pool:
+            for row in pool.imap_unordered(run_cell, jobs):
+                rows.append(row)
+                print(f"{len(rows)}/{len(jobs)} {row}", flush=True)
+            oracle = dict(zip(cells, pool.starmap(oracle_found, oracle_jobs)))
     df = pd.DataFrame(rows)
     # Methods left out of a cell (SLOW_PAIRS 0) get an empty row, so that the table says so.
     ran = set(zip(df["method"], df["n_landmarks"], df["snr_db"]))
-    df = pd.concat([df, pd.DataFrame([{"method": m, "n_landmarks": n, "snr_db": snr, "pairs": 0}
-                                      for n, snr in CELLS for m in methods if (m, n, snr) not in ran])],
+    df = pd.concat([df, pd.DataFrame([{"method": m, "layout": layout, "n_landmarks": n, "snr_db": snr, "pairs": 0}
+                                      for n, snr in cells for m in methods if (m, n, snr) not in ran])],
                    ignore_index=True)
     with np.errstate(invalid="ignore", divide="ignore"):
         lo, hi = wilson(df["found"].to_numpy(), df["pairs"].to_numpy())
     df["found_rate"] = df["found"] / df["pairs"]
     df["found_lo"], df["found_hi"] = lo, hi
-    df["correspondence_oracle_found"] = [oracle[(n, s)] / PAIRS for n, s in zip(df["n_landmarks"], df["snr_db"])]
+    df["correspondence_oracle_found"] = [oracle[(n, s)] / pairs for n, s in zip(df["n_landmarks"], df["snr_db"])]
+    df["oracle_pairs"] = pairs
     df["snr_db"] = df["snr_db"].astype(float)
-    df = df.merge(detector_limits(), on=["n_landmarks", "snr_db"], how="left")
-    df["method"] = pd.Categorical(df["method"], methods)
-    df = df.sort_values(["n_landmarks", "snr_db", "method"]).reset_index(drop=True)
+    df = df.merge(detector_limits(), on=["layout", "n_landmarks", "snr_db"], how="left")
     out.mkdir(parents=True, exist_ok=True)
+    df = pd.concat([kept_rows(out / "peers.csv", layout), df], ignore_index=True)
+    order = [m for m in available_methods() + sorted(set(df["method"])) if m in set(df["method"])]
+    df["method"] = pd.Categorical(df["method"], list(dict.fromkeys(order)))
+    df = df.sort_values(["layout", "n_landmarks", "snr_db", "method"]).reset_index(drop=True)
     df.to_csv(out / "peers.csv", index=False, float_format="%.4g")
     write_markdown(df, out / "peers.md")
     return df
 
 
+def kept_rows(path: Path, layout: str) -> pd.DataFrame:
+    """The rows of an earlier peers.csv of the layouts other than ``layout`` (rows without one: strip)."""
+    if not path.exists():
+        return pd.DataFrame()
+    old = pd.read_csv(path)
+    if "layout" not in old:
+        old.insert(1, "layout", "strip")
+    if "oracle_pairs" not in old:
+        old["oracle_pairs"] = PAIRS
+    return old[old["layout"] != layout]
+
+
 def write_markdown(df: pd.DataFrame, path: Path) -> None:
-    """peers.md: one row per (n, SNR), one column per method (found rate [interval], false merges, time)."""
+    """peers.md: one row per (layout, n, SNR), one column per method (found rate [interval], false merges,
+    time)."""
     methods = list(df["method"].cat.categories)
     lines = [("Transform found on related pairs, % [95 % Wilson interval] (pairs), false merges on as many "
               "unrelated pairs, median seconds per merge. Limits: the fit knowing every correspondence on the "
-              "same pairs; the exhaustive detector (results/detector/, its own pairs and threshold)."), "",
-             "| n, SNR | " + " | ".join(methods) + " | oracle fit | detector |",
+              "first (oracle pairs) related pairs; the exhaustive detector (results/detector/, its own pairs "
+              "and threshold)."), "",
+             "| layout, n, SNR | " + " | ".join(methods) + " | oracle fit | detector |",
              "|---|" + "---|" * (len(methods) + 2)]
-    for (n, snr), cell in df.groupby(["n_landmarks", "snr_db"], sort=True):
+    for (layout, n, snr), cell in df.groupby(["layout", "n_landmarks", "snr_db"], sort=True, observed=True):
         by = cell.set_index("method", drop=False)
         parts = []
         for m in methods:
@@ -176,9 +222,88 @@ def write_markdown(df: pd.DataFrame, path: Path) -> None:
                          f"{int(r.false_merges)} false, {r.median_s:.3g} s")
         first = cell.iloc[0]
         det = "" if pd.isna(first.detector_found) else f"{100 * first.detector_found:.0f}"
-        lines.append(f"| {n}, {snr:g} dB | " + " | ".join(parts) +
-                     f" | {100 * first.correspondence_oracle_found:.0f} | {det} |")
+        lines.append(f"| {layout}, {n}, {snr:g} dB | " + " | ".join(parts) +
+                     f" | {100 * first.correspondence_oracle_found:.0f} ({int(first.oracle_pairs)}) | {det} |")
     path.write_text("\n".join(lines) + "\n")
+
+
+def timed_merge(conn, method: str, n: int, seed: int) -> None:
+    """Child process of ``scaling``: one merge, its seconds (or the error) sent back through ``conn``."""
+    import resource
+
+    cap = SCALING_MEMORY_GB << 30
+    resource.setrlimit(resource.RLIMIT_AS, (cap, cap))
+    try:
+        sc = mm.simulate.make_pair(n, OVERLAP, SCALING_SNR, rng=seed)
+        t0 = time.perf_counter()
+        res = mm.merge_maps(sc.p, sc.q, sc.sigma, method=method, rng=0)
+        conn.send(("ok", time.perf_counter() - t0, bool(mm.metrics.map_errors(sc, res)["transform_found"])))
+    except MemoryError:
+        conn.send((f"over {SCALING_MEMORY_GB} GB", np.nan, False))
+
+
+def scaling(out: Path, sizes=SCALING_SIZES, time_limit: float = 120.0, methods=None) -> pd.DataFrame:
+    """Seconds per merge against map size, one merge at a time in a child process; writes scaling.csv / .md."""
+    import multiprocessing as mp
+
+    ctx = mp.get_context("fork")  # the children inherit the compiled kernels of the warm-up below
+    methods = list(methods or ["consensus", *[p for p in PEER_PAIRS if importlib.util.find_spec(PEER_MODULES[p])]])
+    warm = mm.simulate.make_pair(20, OVERLAP, SCALING_SNR, rng=0)
+    rows = []
+    for method in methods:
+        mm.merge_maps(warm.p, warm.q, warm.sigma, method=method, rng=0)
+        stopped = None
+        for n in sorted(sizes):
+            for seed in range(SCALING_PAIRS):
+                if stopped:
+                    rows.append({"method": method, "n_landmarks": n, "seed": seed, "status": f"not run ({stopped})",
+                                 "seconds": np.nan, "found": False})
+                    continue
+                recv, send = ctx.Pipe(duplex=False)
+                child = ctx.Process(target=timed_merge, args=(send, method, n, seed))
+                child.start()
+                send.close()  # so that a child that dies leaves the pipe at its end
+                status, secs, found = f"over {time_limit:g} s", np.nan, False
+                if recv.poll(time_limit):
+                    try:
+                        status, secs, found = recv.recv()
+                    except EOFError:
+                        child.join()
+                        status = f"failed (exit {child.exitcode})"
+                if child.is_alive():
+                    child.kill()
+                child.join()
+                recv.close()
+                if status != "ok":
+                    stopped = f"{status} at {n}"
+                rows.append({"method": method, "n_landmarks": n, "seed": seed, "status": status, "seconds": secs,
+                             "found": found})
+                print(rows[-1], flush=True)
+                # Written after every merge, so that a run stopped early keeps what it measured.
+                write_scaling(pd.DataFrame(rows), out, sizes, time_limit, methods)
+    return pd.DataFrame(rows)
+
+
+def write_scaling(df: pd.DataFrame, out: Path, sizes, time_limit: float, methods) -> None:
+    """scaling.csv and scaling.md: per method and size, the median seconds of the merges that finished."""
+    out.mkdir(parents=True, exist_ok=True)
+    df.to_csv(out / "scaling.csv", index=False, float_format="%.4g")
+    lines = [f"Seconds per merge (median of the pairs that finished; found / pairs), 30 dB, strip layout, "
+             f"overlap {OVERLAP}, one merge at a time, limit {time_limit:g} s and {SCALING_MEMORY_GB} GB a merge.",
+             "", "| method | " + " | ".join(f"{n} landmarks" for n in sorted(sizes)) + " |",
+             "|---|" + "---|" * len(sizes)]
+    for method in methods:
+        parts = []
+        for n in sorted(sizes):
+            r = df[(df["method"] == method) & (df["n_landmarks"] == n)]
+            ok = r[r["status"] == "ok"]
+            text = f"{np.median(ok['seconds']):.3g} s ({int(ok['found'].sum())}/{len(ok)})" if len(ok) else ""
+            bad = r[r["status"] != "ok"]["status"]
+            if len(bad):
+                text = (text + "; " if text else "") + bad.iloc[0]
+            parts.append(text or "not yet run")
+        lines.append(f"| {method} | " + " | ".join(parts) + " |")
+    (out / "scaling.md").write_text("\n".join(lines) + "\n")
 
 
 def calibration_scores(job) -> dict:
@@ -212,10 +337,21 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", type=Path, default=Path("results/peers"))
     ap.add_argument("--calibrate", action="store_true", help="set the peers' thresholds instead")
+    ap.add_argument("--scaling", action="store_true", help="time per merge against map size instead")
     ap.add_argument("--processes", type=int, default=2)
+    ap.add_argument("--layout", choices=list(CELLS), default="strip")
+    ap.add_argument("--methods", nargs="+", help="default: every available method")
+    ap.add_argument("--pairs", type=int, default=PAIRS, help="related (and unrelated) pairs per cell at most")
+    ap.add_argument("--sizes", type=int, nargs="+", default=list(SCALING_SIZES))
+    ap.add_argument("--time-limit", type=float, default=120.0, help="seconds a merge may take (--scaling)")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
-    df = (calibrate if args.calibrate else compare)(args.out, args.processes)
+    if args.calibrate:
+        df = calibrate(args.out, args.processes)
+    elif args.scaling:
+        df = scaling(args.out, args.sizes, args.time_limit, args.methods)
+    else:
+        df = compare(args.out, args.processes, args.layout, args.methods, args.pairs)
     print(df.to_string())
     print(f"{time.perf_counter() - t0:.0f} s")
 

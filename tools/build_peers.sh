@@ -7,7 +7,7 @@
 #
 # Usage:
 #   tools/build_peers.sh [--clipper DIR] [--teaser DIR] --pmc DIR [--spectra DIR] [--tinyply DIR]
-#                        [--pybind11-src DIR] [--python PY] [--build DIR]
+#                        [--pybind11-src DIR] [--python PY] [--build DIR] [--jobs N]
 #
 #   --clipper DIR       mit-acl/clipper source tree (builds the module `clipperpy`)
 #   --teaser DIR        MIT-SPARK/TEASER-plusplus source tree (builds `teaserpp_python`);
@@ -17,6 +17,7 @@
 #                       pybind11 installed in the venv, fetched with `pip download --no-binary :all:`
 #   --python PY         the venv's interpreter (default: .venv/bin/python beside this script's parent)
 #   --build DIR         scratch build directory (default: a new temporary directory)
+#   --jobs N            parallel compile jobs (default: the number of cores; on a shared machine give 1)
 #
 # Needs cmake >= 3.14, a C++14 compiler, Eigen 3 (Debian: apt-get install libeigen3-dev) and pybind11 in
 # the venv (pip install pybind11). See docs/peers.md for the versions this was run with.
@@ -24,7 +25,7 @@ set -euo pipefail
 
 here=$(cd "$(dirname "$0")/.." && pwd)
 py="$here/.venv/bin/python"
-clipper="" teaser="" pmc="" spectra="" tinyply="" pyb_src="" build=""
+clipper="" teaser="" pmc="" spectra="" tinyply="" pyb_src="" build="" jobs=""
 while [[ $# -gt 0 ]]; do
   case "$1" in
     --clipper) clipper=$(realpath "$2"); shift 2 ;;
@@ -35,7 +36,8 @@ while [[ $# -gt 0 ]]; do
     --pybind11-src) pyb_src=$(realpath "$2"); shift 2 ;;
     --python) py="$2"; shift 2 ;;
     --build) build=$(realpath -m "$2"); shift 2 ;;
-    -h|--help) sed -n '2,22p' "$0"; exit 0 ;;
+    --jobs) jobs="$2"; shift 2 ;;
+    -h|--help) sed -n '2,23p' "$0"; exit 0 ;;
     *) echo "build_peers.sh: unknown argument $1 (see --help)" >&2; exit 2 ;;
   esac
 done
@@ -47,7 +49,7 @@ build=${build:-$(mktemp -d)}
 mkdir -p "$build"
 site=$("$py" -c "import sysconfig; print(sysconfig.get_paths()['purelib'])")
 pyb_dir=$("$py" -m pybind11 --cmakedir)
-jobs=$(nproc 2>/dev/null || echo 2)
+jobs=${jobs:-$(nproc 2>/dev/null || echo 2)}
 common=(-DCMAKE_BUILD_TYPE=Release -DPython_EXECUTABLE="$py" -DPYTHON_EXECUTABLE="$py" -DPMC_BUILD_SHARED=OFF
         -DFETCHCONTENT_FULLY_DISCONNECTED=ON -DFETCHCONTENT_SOURCE_DIR_PMC="$pmc")
 
