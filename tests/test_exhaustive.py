@@ -84,7 +84,9 @@ def test_limit_experiment_resumes_without_recomputing_finished_pairs(tmp_path, m
 
     def fake_consensus(n, layout, snr, seed, unrelated):
         calls.append("consensus")
-        return seed % 2 == 0, seed % 3 == 0 and not unrelated, seed % 5, seed % 2
+        # Then the stages' statistics, which the limit table does not read.
+        return (seed % 2 == 0, seed % 3 == 0 and not unrelated, seed % 5, seed % 2,
+                np.inf, 0, 0, False, np.inf, 1.0, np.inf, False)
 
     def fake_oracle(n, layout, snr, seed, unrelated):
         calls.append("oracle")
@@ -94,9 +96,9 @@ def test_limit_experiment_resumes_without_recomputing_finished_pairs(tmp_path, m
         calls.append("correspondence")
         return (not unrelated and seed % 4 != 1,)
 
+    grid_measures = [columns for measure, columns in detector.MEASURES if measure is not detector.pair_statistic]
     monkeypatch.setattr(detector, "MEASURES", tuple(zip((fake_statistic, fake_consensus, fake_oracle,
-                                                         fake_correspondence),
-                                                        (columns for _, columns in detector.MEASURES))))
+                                                         fake_correspondence), grid_measures)))
     path, snrs = tmp_path / "pairs.csv", (0.0, 2.5)
     fresh = detector.run_pairs(8, 1, path, snrs)
     n = 2 * 2 * 2 * 8  # layouts x SNRs x (null, related) x trials
@@ -189,3 +191,56 @@ def test_grid_cells_are_the_argmax_of_the_convolved_votes_and_hull_counts(n, snr
         value = (fftconvolve(counts, kernel, mode="same")
                  + np.log(1 - p_shared) * np.rint(fftconvolve(A, B[::-1, ::-1].astype(float), mode="full")))
         assert value[tuple(cell)] == pytest.approx(value.max(), rel=1e-9, abs=1e-9)
+
+
+def test_pair_maximiser_finds_the_transform_and_the_chance_maxima_the_grid_misses():
+    from experiments import detector
+
+    for seed in (4, 7):
+        sc = mm.simulate.make_pair(10, 0.75, 20, rng=seed)
+        value, theta, t = detector.pair_max_log_lr(sc.p, sc.q, sc.sigma, 0.75, sc.density)
+        s = np.sqrt(2) * sc.sigma
+        model = exhaustive.Mixture.of_map(sc.p, s, exhaustive.bump_height(sc.density, 1.0, s, 0.75), 0.75)
+        assert mm.metrics.transform_found(sc, theta, t) and value >= model.log_lr(sc.q, sc.theta, sc.t)[0] - 1e-9
+    # Unrelated pairs whose best chance alignment falls between the grid's cells.
+    for seed in (1, 4, 5):
+        sc = mm.simulate.make_pair(10, 0.75, 20, rng=seed, unrelated=True)
+        grid = exhaustive.max_log_lr(sc.p, sc.q, sc.sigma, 0.75, sc.density)[0]
+        assert detector.pair_max_log_lr(sc.p, sc.q, sc.sigma, 0.75, sc.density)[0] > grid + 0.5
+    with pytest.raises(ValueError, match="P and Q must be"):
+        detector.pair_max_log_lr(np.ones(4), sc.q, sc.sigma, 0.75, sc.density)
+
+
+def test_null_threshold_is_the_empirical_quantile_given_enough_null_pairs():
+    from experiments import detector
+
+    null = np.random.default_rng(0).gumbel(size=10_000)
+    threshold, rule = detector.null_threshold(null, 1e-3)
+    assert rule == "empirical" and np.sum(null > threshold) <= 10 < np.sum(null >= threshold) + 1
+    # Fewer pairs: the exponential tail's extrapolation, near the Gumbel law's 1e-3 quantile (6.9).
+    threshold, rule = detector.null_threshold(null[:1000], 1e-3)
+    assert rule == "tail" and abs(threshold - 6.9) < 1.0
+
+
+def test_stage_table_keeps_every_rule_within_the_false_alarm_budget():
+    from experiments import detector
+
+    rng = np.random.default_rng(3)
+    n_null, n_related = 4000, 200
+
+    def pairs(n, unrelated, shift):
+        group = rng.random(n) < 0.4
+        return pd.DataFrame({"n_landmarks": 10, "layout": "strip", "snr_db": 20.0, "unrelated": unrelated,
+                             "consensus_found": False, "consensus_merged": False,
+                             "tri_log_nfa": np.where(group, rng.normal(2 - shift, 2, n), np.inf),
+                             "tri_hypotheses": np.where(group, 5, 0), "tri_found": group & (shift > 0),
+                             "search_log_nfa": rng.normal(6 - shift, 2, n), "search_log_hypotheses": 15.0,
+                             "search_log_tail": rng.normal(-9 - shift, 2, n), "search_found": shift > 0})
+
+    runs = pd.concat([pairs(n_null, True, 0.0), pairs(n_related, False, 8.0)], ignore_index=True)
+    row = detector.stage_table(runs, 1e-3).iloc[0]
+    assert row.null_pairs == n_null and row.related_pairs == n_related
+    for stat in detector.STAGE_STATISTICS:
+        assert row[f"{stat}_null_pass"] <= 4
+    assert row.combined_null_pass <= 4 and 0.5 < row.combined_found_rate <= 1
+    assert row.related_tri_group_rate == pytest.approx(np.isfinite(runs.tri_log_nfa[~runs.unrelated]).mean())

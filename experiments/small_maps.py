@@ -1,0 +1,118 @@
+"""Where consensus's power goes on small maps: the search's bound at one transform, and held-out null pairs.
+
+    python -m experiments.small_maps --landmarks 10 20 --snrs 20 30 --pairs 10000 --bound-pairs 2000 \
+        --out results/detector/small
+
+Two checks beside ``experiments.detector``'s tables (``stages``), on
+unrelated pairs only:
+
+1. ``bound``: the global search's a contrario test at one fixed transform.
+   On unrelated pairs of the detector's tuning seeds (300000+k), the
+   mixture model of ``mapmerge.search`` (pair noise r, prior
+   ``search.MIXTURE_PRIOR``) is evaluated at the pair's own drawn motion,
+   a transform chosen without looking at the landmarks, and
+   ``Mixture.null_log_tail`` bounds P(Λ >= observed) there. If the bound
+   were exact, a fraction u of the pairs would have a bound <= log u; the
+   table gives the fraction at u = 1e-1, 1e-2, 1e-3 and the empirical
+   1e-3 quantile of the bound: how loose Chernoff's bound is on a few
+   landmarks, apart from the hypothesis count;
+2. ``holdout``: ``experiments.detector.consensus_outcome`` on unrelated
+   pairs of seeds 600000+k (kept per cell in ``holdout_<n>_<snr>.csv``), disjoint from the tuning seeds the thresholds
+   of ``stages`` were set on: how many pass consensus's defaults, and each
+   of the ``stages`` table's empirical thresholds (read from
+   ``stages.csv`` in ``--out``), so the false-merge rates of the calibrated
+   rules are measured on pairs they were not chosen on.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from scipy.spatial import ConvexHull
+
+import mapmerge as mm
+from mapmerge.exhaustive import Mixture, bump_height, pair_noise
+
+from .aggregate import save_table
+from .detector import STAGE_STATISTICS, TUNING_SEED, consensus_outcome
+
+#: Unrelated pairs held out from every threshold: seeds HOLDOUT_SEED + k.
+HOLDOUT_SEED = 600_000
+#: Tail probabilities at which the bound's calibration is read.
+LEVELS = (1e-1, 1e-2, 1e-3)
+#: ``consensus_outcome``'s columns (``detector.MEASURES``).
+OUTCOME = ("consensus_merged", "consensus_found", "consensus_correct", "consensus_wrong", "tri_log_nfa",
+           "tri_hypotheses", "tri_pairs", "tri_found", "search_log_nfa", "search_log_hypotheses", "search_log_tail",
+           "search_found")
+
+
+def fixed_transform_bound(n: int, snr: float, seed: int) -> tuple[float, int, float]:
+    """(Λ, q landmarks inside p's hull, log tail bound) of the search's model at an unrelated pair's own motion."""
+    sc = mm.simulate.make_pair(n, 0.75, snr, rng=seed, unrelated=True)
+    r, hull = pair_noise(sc.sigma), ConvexHull(sc.p)
+    prior = mm.search.MIXTURE_PRIOR
+    model = Mixture.of_map(sc.p, r, bump_height(len(sc.p), hull.volume, r, prior), prior, hull)
+    value, inside = model.log_lr(sc.q, sc.theta, sc.t)
+    return value, inside, float(model.null_log_tail([value], [inside])[0])
+
+
+def bound_table(n: int, snr: float, pairs: int) -> dict:
+    bounds = np.array([fixed_transform_bound(n, snr, TUNING_SEED + k)[2] for k in range(pairs)])
+    return {"n_landmarks": n, "snr_db": snr, "pairs": pairs,
+            **{f"fraction_bound_le_{u:g}": float(np.mean(bounds <= np.log(u))) for u in LEVELS},
+            "bound_quantile_1e-3": float(np.quantile(bounds, 1e-3)), "median_bound": float(np.median(bounds))}
+
+
+def holdout_table(n: int, snr: float, pairs: int, stages: pd.DataFrame, out: Path) -> dict:
+    """Null passes of the defaults and of ``stages``' thresholds on held-out unrelated pairs (strip layout)."""
+    path = out / f"holdout_{n}_{snr:g}.csv"
+    if path.is_file() and len(pd.read_csv(path)) == pairs:
+        rows = pd.read_csv(path)
+    else:
+        seeds = HOLDOUT_SEED + np.arange(pairs)
+        rows = pd.DataFrame([consensus_outcome(n, "strip", snr, int(seed), True) for seed in seeds], columns=OUTCOME)
+        rows.insert(0, "seed", seeds)
+        rows.to_csv(path, index=False, float_format="%.10g")
+    cell = stages[(stages.n_landmarks == n) & (stages.snr_db == snr)].iloc[0]
+    row = {"n_landmarks": n, "snr_db": snr, "holdout_pairs": pairs,
+           "consensus_false_merges": int(rows.consensus_merged.astype(bool).sum())}
+    for stat in STAGE_STATISTICS:
+        row[f"{stat}_null_pass"] = int(np.sum(rows[stat] < cell[f"{stat}_threshold"]))
+    tri = rows.tri_log_nfa < cell.combined_tri_threshold
+    row["combined_null_pass"] = int(np.sum(tri | (rows.search_log_nfa < cell.combined_search_threshold)))
+    return row
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description="The search's bound at one transform; held-out null pairs.")
+    parser.add_argument("--landmarks", type=int, nargs="+", default=[10, 20])
+    parser.add_argument("--snrs", type=float, nargs="+", default=[20.0, 30.0])
+    parser.add_argument("--pairs", type=int, default=10_000, help="held-out unrelated pairs per cell")
+    parser.add_argument("--bound-pairs", type=int, default=2_000, help="unrelated pairs per cell of the bound check")
+    parser.add_argument("--out", default="results/detector/small")
+    parser.add_argument("--checks", nargs="+", choices=("bound", "holdout"), default=["bound", "holdout"])
+    args = parser.parse_args(argv)
+    if min(args.pairs, args.bound_pairs) < 1:
+        raise SystemExit(f"--pairs and --bound-pairs must be >= 1, got {args.pairs} and {args.bound_pairs}")
+    out = Path(args.out)
+    cells = list(itertools.product(args.landmarks, args.snrs))
+    if "bound" in args.checks:
+        table = pd.DataFrame([bound_table(n, snr, args.bound_pairs) for n, snr in cells])
+        for path in save_table(table, out / "bound"):
+            print(path, flush=True)
+    if "holdout" not in args.checks:
+        return
+    if not (out / "stages.csv").is_file():
+        raise SystemExit(f"--out {out}: no stages.csv (run experiments.detector there first)")
+    stages = pd.read_csv(out / "stages.csv")
+    table = pd.DataFrame([holdout_table(n, snr, args.pairs, stages, out) for n, snr in cells])
+    for path in save_table(table, out / "holdout"):
+        print(path)
+
+
+if __name__ == "__main__":
+    main()
