@@ -25,7 +25,7 @@ without any correspondence:
    sampling). With H the number of (rotation, translation) hypotheses at
    resolution r, ``NFA = H · P(Λ >= observed)``, and the best hypothesis is
    accepted when NFA <= ``SEARCH_NFA``; its landmarks are then associated by
-   ``consensus.associate``. Λ pools the evidence of every landmark, weighed
+   ``association.associate``. Λ pools the evidence of every landmark, weighed
    by how close it lies to its partner, which no single landmark carries at
    10 dB, where a chance partner lies within the noise of most landmarks.
    Where the noise exceeds ``MAX_NOISE_SPACING`` landmark spacings (about
@@ -59,7 +59,7 @@ import hashlib
 import numpy as np
 from scipy.spatial import ConvexHull, cKDTree
 
-from .alignment import Alignment, fit_transforms, rotate, rotation
+from .alignment import Alignment, fit_transforms, rotate
 from .association import associate, declared_triangles
 from .exhaustive import Mixture, bump_height, pair_noise
 from .neighbours import cell_grid, nearest_within, njit
