@@ -105,8 +105,15 @@ STEPS: tuple[Step, ...] = (
     Step("detector", ("experiments.detector",), ("results/detector",)),
     Step("detector_15db", ("experiments.detector", "--snrs", "15", "--layouts", "strip", "--trials", "1000",
                            "--out", "results/detector/15db"), ("results/detector/15db",)),
-    Step("detector_small", ("experiments.detector", "--landmarks", "10", "20", "--snrs", "20", "--layouts", "strip",
-                            "--out", "results/detector/small"), ("results/detector/small",)),
+    # The paper's Fig. 3 map sizes at a 1e-3 false-alarm rate (docs/small_maps.md): 10,000 null pairs per cell.
+    Step("detector_small", ("experiments.detector", "--landmarks", "10", "20", "--snrs", "15", "20", "25", "30",
+                            "--layouts", "strip", "--trials", "500", "--null-pairs", "10000", "--false-alarm", "1e-3",
+                            "--maximiser", "pairs", "--out", "results/detector/small"), ("results/detector/small",)),
+    # Both read detector_small's stages.csv.
+    Step("small_bound", ("experiments.small_maps", "--landmarks", "10", "20", "--snrs", "20", "30", "--checks", "bound",
+                         "--bound-pairs", "2000", "--out", "results/detector/small"), ("results/detector/small",)),
+    Step("small_holdout", ("experiments.small_maps", "--landmarks", "10", "20", "--snrs", "20", "30", "--checks",
+                           "holdout", "--pairs", "10000", "--out", "results/detector/small"), ("results/detector/small",)),
     _compare("compare"),
     _compare("compare_consensus"),
     _compare("compare_search"),

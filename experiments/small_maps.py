@@ -17,7 +17,8 @@ unrelated pairs only:
    1e-3 quantile of the bound: how loose Chernoff's bound is on a few
    landmarks, apart from the hypothesis count;
 2. ``holdout``: ``experiments.detector.consensus_outcome`` on unrelated
-   pairs of seeds 600000+k (kept per cell in ``holdout_<n>_<snr>.csv``), disjoint from the tuning seeds the thresholds
+   pairs of seeds 600000+k (kept per cell in ``holdout_<n>_<snr>_<code digest>.csv``, so that only the
+   same code reuses them), disjoint from the tuning seeds the thresholds
    of ``stages`` were set on: how many pass consensus's defaults, and each
    of the ``stages`` table's empirical thresholds (read from
    ``stages.csv`` in ``--out``), so the false-merge rates of the calibrated
@@ -37,8 +38,10 @@ from scipy.spatial import ConvexHull
 import mapmerge as mm
 from mapmerge.exhaustive import Mixture, bump_height, pair_noise
 
+from . import detector
 from .aggregate import save_table
 from .detector import STAGE_STATISTICS, TUNING_SEED, consensus_outcome
+from .trials import code_digest
 
 #: Unrelated pairs held out from every threshold: seeds HOLDOUT_SEED + k.
 HOLDOUT_SEED = 600_000
@@ -69,7 +72,7 @@ def bound_table(n: int, snr: float, pairs: int) -> dict:
 
 def holdout_table(n: int, snr: float, pairs: int, stages: pd.DataFrame, out: Path) -> dict:
     """Null passes of the defaults and of ``stages``' thresholds on held-out unrelated pairs (strip layout)."""
-    path = out / f"holdout_{n}_{snr:g}.csv"
+    path = out / f"holdout_{n}_{snr:g}_{code_digest(detector.__file__)[:12]}.csv"
     if path.is_file() and len(pd.read_csv(path)) == pairs:
         rows = pd.read_csv(path)
     else:

@@ -27,8 +27,9 @@ def test_steps_run_the_detector_before_its_readers_and_the_docs_last():
         assert step.command.startswith("python -m experiments.")
         assert set(step.needs) <= set(run_all.INSTALL), step.name
     by_name = {s.name: s for s in run_all.STEPS}
-    assert by_name["detector_small"].command == ("python -m experiments.detector --landmarks 10 20 --snrs 20 "
-                                                 "--layouts strip --out results/detector/small")
+    assert by_name["detector_small"].command == (
+        "python -m experiments.detector --landmarks 10 20 --snrs 15 20 25 30 --layouts strip --trials 500 "
+        "--null-pairs 10000 --false-alarm 1e-3 --maximiser pairs --out results/detector/small")
     assert {"pycpd", "clipperpy", "teaserpp_python"} <= set(by_name["peers"].needs)
 
 
