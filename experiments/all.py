@@ -129,6 +129,8 @@ STEPS: tuple[Step, ...] = (
     Step("mrclam", ("experiments.mrclam",), ("results/mrclam",), ("gtsam",)),
     Step("peers_calibrate", ("experiments.peers", "--calibrate"), ("results/peers",), PEERS),
     Step("peers", ("experiments.peers",), ("results/peers",), (*PEERS, "astroalign")),
+    Step("peers_interleaved", ("experiments.peers", "--layout", "interleaved"), ("results/peers",), PEERS),
+    Step("peers_scaling", ("experiments.peers", "--scaling"), ("results/peers",), PEERS),
     Step("docs", ("experiments.docs",), ()),
 )
 
