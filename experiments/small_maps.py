@@ -22,12 +22,21 @@ unrelated pairs only:
    of ``stages`` were set on: how many pass consensus's defaults, and each
    of the ``stages`` table's empirical thresholds (read from
    ``stages.csv`` in ``--out``), so the false-merge rates of the calibrated
-   rules are measured on pairs they were not chosen on.
+   rules are measured on pairs they were not chosen on;
+3. ``calibrated``: consensus with its triangle test's acceptance
+   (``consensus.MATCH_NFA``) raised to the ``--quantile`` quantile of the
+   triangle log NFA on the cell's unrelated tuning pairs (``pairs.csv`` in
+   ``--out``, seeds 300000+k), on the detector's related pairs (seeds
+   100000+k) and on the held-out unrelated pairs (seeds 600000+k): found
+   rate, wrong merges of related pairs and false merges, what a threshold
+   calibrated per cell would give. ``calibrated_<n>_<snr>.csv`` keeps the
+   pairs' outcomes.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import itertools
 from pathlib import Path
 
@@ -40,7 +49,7 @@ from mapmerge.exhaustive import Mixture, bump_height, pair_noise
 
 from . import detector
 from .aggregate import save_table
-from .detector import STAGE_STATISTICS, TUNING_SEED, consensus_outcome
+from .detector import REPORTED_SEED, STAGE_STATISTICS, TUNING_SEED, consensus_outcome
 from .trials import code_digest
 
 #: Unrelated pairs held out from every threshold: seeds HOLDOUT_SEED + k.
@@ -90,6 +99,47 @@ def holdout_table(n: int, snr: float, pairs: int, stages: pd.DataFrame, out: Pat
     return row
 
 
+@contextlib.contextmanager
+def triangle_acceptance(nfa: float):
+    """consensus's triangle test accepting at NFA <= nfa (``consensus.MATCH_NFA``, read at call time) for the
+    duration: what-if runs of a threshold, not a setting of the library."""
+    default = mm.consensus.MATCH_NFA
+    mm.consensus.MATCH_NFA = nfa
+    try:
+        yield
+    finally:
+        mm.consensus.MATCH_NFA = default
+
+
+def merge_outcome(n: int, snr: float, seed: int, unrelated: bool) -> tuple[bool, bool]:
+    """(merged, transform found) of consensus on one of the detector's strip-layout pairs."""
+    sc = mm.simulate.make_pairs(n, 0.75, snr, [seed], unrelated=unrelated, layout="strip")[0]
+    err = mm.metrics.map_errors(sc, mm.merge_maps(sc.p, sc.q, sc.sigma))
+    return bool(err["matched"]), bool(err["matched"] and not unrelated and err["transform_found"])
+
+
+def calibrated_table(n: int, snr: float, related: int, pairs: int, quantile: float, tuning: pd.DataFrame,
+                     out: Path) -> dict:
+    """consensus with its triangle threshold at the tuning pairs' ``quantile`` (strip layout)."""
+    null = tuning[(tuning.n_landmarks == n) & (tuning.snr_db == snr) & tuning.unrelated.astype(bool)]
+    log_t = float(np.quantile(null.tri_log_nfa, quantile))
+    path = out / f"calibrated_{n}_{snr:g}_{quantile:g}_{code_digest(detector.__file__)[:12]}.csv"
+    if path.is_file():
+        rows = pd.read_csv(path)
+    else:
+        seeds = [(False, REPORTED_SEED + k) for k in range(related)] + [(True, HOLDOUT_SEED + k) for k in range(pairs)]
+        with triangle_acceptance(float(np.exp(log_t))):
+            outcomes = [merge_outcome(n, snr, seed, unrelated) for unrelated, seed in seeds]
+        rows = pd.DataFrame([(u, s, *o) for (u, s), o in zip(seeds, outcomes)],
+                            columns=["unrelated", "seed", "merged", "found"])
+        rows.to_csv(path, index=False)
+    rel, hold = rows[~rows.unrelated], rows[rows.unrelated]
+    return {"n_landmarks": n, "snr_db": snr, "quantile": quantile, "tuning_pairs": len(null),
+            "tri_log_nfa_threshold": log_t, "related_pairs": len(rel), "found_rate": rel.found.mean(),
+            "wrong_merges": int((rel.merged & ~rel.found).sum()), "holdout_pairs": len(hold),
+            "false_merges": int(hold.merged.sum())}
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description="The search's bound at one transform; held-out null pairs.")
     parser.add_argument("--landmarks", type=int, nargs="+", default=[10, 20])
@@ -97,7 +147,9 @@ def main(argv=None) -> None:
     parser.add_argument("--pairs", type=int, default=10_000, help="held-out unrelated pairs per cell")
     parser.add_argument("--bound-pairs", type=int, default=2_000, help="unrelated pairs per cell of the bound check")
     parser.add_argument("--out", default="results/detector/small")
-    parser.add_argument("--checks", nargs="+", choices=("bound", "holdout"), default=["bound", "holdout"])
+    parser.add_argument("--checks", nargs="+", choices=("bound", "holdout", "calibrated"), default=["bound", "holdout"])
+    parser.add_argument("--related", type=int, default=500, help="related pairs per cell of the calibrated check")
+    parser.add_argument("--quantile", type=float, default=2e-4, help="tuning quantile of the calibrated check")
     args = parser.parse_args(argv)
     if min(args.pairs, args.bound_pairs) < 1:
         raise SystemExit(f"--pairs and --bound-pairs must be >= 1, got {args.pairs} and {args.bound_pairs}")
@@ -107,14 +159,23 @@ def main(argv=None) -> None:
         table = pd.DataFrame([bound_table(n, snr, args.bound_pairs) for n, snr in cells])
         for path in save_table(table, out / "bound"):
             print(path, flush=True)
-    if "holdout" not in args.checks:
-        return
-    if not (out / "stages.csv").is_file():
-        raise SystemExit(f"--out {out}: no stages.csv (run experiments.detector there first)")
-    stages = pd.read_csv(out / "stages.csv")
-    table = pd.DataFrame([holdout_table(n, snr, args.pairs, stages, out) for n, snr in cells])
-    for path in save_table(table, out / "holdout"):
-        print(path)
+    if "holdout" in args.checks:
+        if not (out / "stages.csv").is_file():
+            raise SystemExit(f"--out {out}: no stages.csv (run experiments.detector there first)")
+        stages = pd.read_csv(out / "stages.csv")
+        table = pd.DataFrame([holdout_table(n, snr, args.pairs, stages, out) for n, snr in cells])
+        for path in save_table(table, out / "holdout"):
+            print(path)
+    if "calibrated" in args.checks:
+        if not 0 < args.quantile < 1 or args.related < 1:
+            raise SystemExit(f"--quantile must be in (0, 1) and --related >= 1, got {args.quantile}, {args.related}")
+        if not (out / "pairs.csv").is_file():
+            raise SystemExit(f"--out {out}: no pairs.csv (run experiments.detector there first)")
+        tuning = pd.read_csv(out / "pairs.csv")
+        table = pd.DataFrame([calibrated_table(n, snr, args.related, args.pairs, args.quantile, tuning, out)
+                              for n, snr in cells])
+        for path in save_table(table, out / "calibrated"):
+            print(path)
 
 
 if __name__ == "__main__":

@@ -52,3 +52,21 @@ def test_detector_recomputes_the_pairs_other_code_wrote(tmp_path, monkeypatch):
     calls.clear()
     pd.testing.assert_frame_equal(detector.run_pairs(8, 1, path, (0.0,), ("strip",)), fresh)
     assert len(calls) == 16
+
+
+def test_small_maps_calibrated_check_loosens_the_triangle_test_and_restores_it(tmp_path):
+    from mapmerge import consensus
+    from experiments import small_maps
+
+    default = consensus.MATCH_NFA
+    # A tuning table whose quantile is a known log NFA: exp(-1) is looser than the default.
+    tuning = pd.DataFrame({"n_landmarks": 10, "snr_db": 30.0, "unrelated": True, "tri_log_nfa": np.full(50, -1.0)})
+    row = small_maps.calibrated_table(10, 30.0, 3, 4, 0.5, tuning, tmp_path)
+    assert consensus.MATCH_NFA == default
+    assert row["tri_log_nfa_threshold"] == -1.0 and row["related_pairs"] == 3 and row["holdout_pairs"] == 4
+    assert 0 <= row["wrong_merges"] <= 3 and 0 <= row["false_merges"] <= 4
+    cached = list(tmp_path.glob("calibrated_10_30_0.5_*.csv"))
+    assert len(cached) == 1 and small_maps.calibrated_table(10, 30.0, 3, 4, 0.5, tuning, tmp_path) == row
+    with small_maps.triangle_acceptance(1.0):
+        assert consensus.MATCH_NFA == 1.0
+    assert consensus.MATCH_NFA == default
