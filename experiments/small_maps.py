@@ -28,7 +28,9 @@ unrelated pairs only:
    triangle log NFA on the cell's unrelated tuning pairs (``pairs.csv`` in
    ``--out``, seeds 300000+k), on the detector's related pairs (seeds
    100000+k) and on the held-out unrelated pairs (seeds 600000+k): found
-   rate, wrong merges of related pairs and false merges, what a threshold
+   rate, wrong merges of related pairs (with their median rotation error,
+   how many are over 5° and how many pair a landmark wrongly) and false
+   merges, what a threshold
    calibrated per cell would give. ``calibrated_<n>_<snr>.csv`` keeps the
    pairs' outcomes.
 """
@@ -111,11 +113,13 @@ def triangle_acceptance(nfa: float):
         mm.consensus.MATCH_NFA = default
 
 
-def merge_outcome(n: int, snr: float, seed: int, unrelated: bool) -> tuple[bool, bool]:
-    """(merged, transform found) of consensus on one of the detector's strip-layout pairs."""
+def merge_outcome(n: int, snr: float, seed: int, unrelated: bool) -> tuple[bool, bool, float, int]:
+    """(merged, transform found, rotation error in degrees, wrong landmark pairs) of consensus on one of the
+    detector's strip-layout pairs (NaN and 0 when not merged)."""
     sc = mm.simulate.make_pairs(n, 0.75, snr, [seed], unrelated=unrelated, layout="strip")[0]
     err = mm.metrics.map_errors(sc, mm.merge_maps(sc.p, sc.q, sc.sigma))
-    return bool(err["matched"]), bool(err["matched"] and not unrelated and err["transform_found"])
+    return (bool(err["matched"]), bool(err["matched"] and not unrelated and err["transform_found"]),
+            float(abs(err["rot_err_deg"])), int(err["wrong_pairs"]))
 
 
 def calibrated_table(n: int, snr: float, related: int, pairs: int, quantile: float, tuning: pd.DataFrame,
@@ -131,12 +135,15 @@ def calibrated_table(n: int, snr: float, related: int, pairs: int, quantile: flo
         with triangle_acceptance(float(np.exp(log_t))):
             outcomes = [merge_outcome(n, snr, seed, unrelated) for unrelated, seed in seeds]
         rows = pd.DataFrame([(u, s, *o) for (u, s), o in zip(seeds, outcomes)],
-                            columns=["unrelated", "seed", "merged", "found"])
+                            columns=["unrelated", "seed", "merged", "found", "rot_err_deg", "wrong_pairs"])
         rows.to_csv(path, index=False)
     rel, hold = rows[~rows.unrelated], rows[rows.unrelated]
+    wrong = rel[rel.merged & ~rel.found]
     return {"n_landmarks": n, "snr_db": snr, "quantile": quantile, "tuning_pairs": len(null),
             "tri_log_nfa_threshold": log_t, "related_pairs": len(rel), "found_rate": rel.found.mean(),
-            "wrong_merges": int((rel.merged & ~rel.found).sum()), "holdout_pairs": len(hold),
+            "wrong_merges": len(wrong), "wrong_median_rot_err_deg": wrong.rot_err_deg.median(),
+            "wrong_over_5_deg": int((wrong.rot_err_deg > 5).sum()),
+            "wrong_with_wrong_landmark_pairs": int((wrong.wrong_pairs > 0).sum()), "holdout_pairs": len(hold),
             "false_merges": int(hold.merged.sum())}
 
 
