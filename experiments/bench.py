@@ -85,8 +85,11 @@ def per_trial_cli(n_landmarks: int, n_trials: int, repeats: int = 3, method: str
     trial = floor = np.inf
     with tempfile.TemporaryDirectory() as tmp:
         for r in range(repeats):
-            long = _cli([*cell, f"mc.n_trials={n_trials + 100}", f"hydra.run.dir={tmp}/long{r}"])
-            short = _cli([*cell, "mc.n_trials=100", f"hydra.run.dir={tmp}/short{r}"])
+            # Each run has an output root, and so a trial cache, of its own: from the shared cache (or the
+            # long run's) the short run would read its trials instead of computing them.
+            long = _cli([*cell, f"mc.n_trials={n_trials + 100}", f"output_root={tmp}/long{r}",
+                         f"hydra.run.dir={tmp}/long{r}/run"])
+            short = _cli([*cell, "mc.n_trials=100", f"output_root={tmp}/short{r}", f"hydra.run.dir={tmp}/short{r}/run"])
             trial = min(trial, (long - short) / n_trials)
             floor = min(floor, delaunay_floor(n_landmarks, 0.75, n_trials))
     return {"method": method, "n_landmarks": n_landmarks, "trial_s": trial, "floor_s": floor, "ratio": trial / floor}
@@ -112,8 +115,9 @@ def fig3_grid(trials: int, launcher: str) -> float:
     extra = (["hydra/launcher=joblib", "hydra.launcher.n_jobs=2", "mc.n_jobs=1"] if launcher == "joblib"
              else ["hydra/launcher=basic", "mc.n_jobs=2"])
     with tempfile.TemporaryDirectory() as tmp:
-        return _cli(["-m", "experiment=fig3", f"mc.n_trials={trials}", *extra, f"hydra.sweep.dir={tmp}",
-                     f"aggregate_dir={tmp}/aggregate"])
+        # An empty trial cache of its own (output_root), so that every trial is computed.
+        return _cli(["-m", "experiment=fig3", f"mc.n_trials={trials}", *extra, f"output_root={tmp}",
+                     f"hydra.sweep.dir={tmp}/sweep", f"aggregate_dir={tmp}/aggregate"])
 
 
 def one_size(n: int, method: str, snr_db: float = 30.0) -> dict:
