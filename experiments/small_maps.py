@@ -30,9 +30,9 @@ unrelated pairs only:
    100000+k) and on the held-out unrelated pairs (seeds 600000+k): found
    rate, wrong merges of related pairs (with their median rotation error,
    how many are over 5° and how many pair a landmark wrongly) and false
-   merges, what a threshold
-   calibrated per cell would give. ``calibrated_<n>_<snr>.csv`` keeps the
-   pairs' outcomes.
+   merges, what a threshold calibrated per cell would give.
+   ``calibrated_<n>_<snr>_<quantile>_<code digest>.csv`` keeps the pairs'
+   outcomes.
 """
 
 from __future__ import annotations
@@ -128,7 +128,7 @@ def calibrated_table(n: int, snr: float, related: int, pairs: int, quantile: flo
     null = tuning[(tuning.n_landmarks == n) & (tuning.snr_db == snr) & tuning.unrelated.astype(bool)]
     log_t = float(np.quantile(null.tri_log_nfa, quantile))
     path = out / f"calibrated_{n}_{snr:g}_{quantile:g}_{code_digest(detector.__file__)[:12]}.csv"
-    if path.is_file():
+    if path.is_file() and len(pd.read_csv(path)) == related + pairs:
         rows = pd.read_csv(path)
     else:
         seeds = [(False, REPORTED_SEED + k) for k in range(related)] + [(True, HOLDOUT_SEED + k) for k in range(pairs)]
