@@ -84,9 +84,8 @@ def bound_table(n: int, snr: float, pairs: int) -> dict:
 def holdout_table(n: int, snr: float, pairs: int, stages: pd.DataFrame, out: Path) -> dict:
     """Null passes of the defaults and of ``stages``' thresholds on held-out unrelated pairs (strip layout)."""
     path = out / f"holdout_{n}_{snr:g}_{code_digest(detector.__file__)[:12]}.csv"
-    if path.is_file() and len(pd.read_csv(path)) == pairs:
-        rows = pd.read_csv(path)
-    else:
+    rows = pd.read_csv(path) if path.is_file() else None
+    if rows is None or len(rows) != pairs:
         seeds = HOLDOUT_SEED + np.arange(pairs)
         rows = pd.DataFrame([consensus_outcome(n, "strip", snr, int(seed), True) for seed in seeds], columns=OUTCOME)
         rows.insert(0, "seed", seeds)
@@ -116,7 +115,7 @@ def triangle_acceptance(nfa: float):
 def merge_outcome(n: int, snr: float, seed: int, unrelated: bool) -> tuple[bool, bool, float, int]:
     """(merged, transform found, rotation error in degrees, wrong landmark pairs) of consensus on one of the
     detector's strip-layout pairs (NaN and 0 when not merged)."""
-    sc = mm.simulate.make_pairs(n, 0.75, snr, [seed], unrelated=unrelated, layout="strip")[0]
+    sc = detector._pair(n, "strip", snr, seed, unrelated)
     err = mm.metrics.map_errors(sc, mm.merge_maps(sc.p, sc.q, sc.sigma))
     return (bool(err["matched"]), bool(err["matched"] and not unrelated and err["transform_found"]),
             float(abs(err["rot_err_deg"])), int(err["wrong_pairs"]))
@@ -128,9 +127,8 @@ def calibrated_table(n: int, snr: float, related: int, pairs: int, quantile: flo
     null = tuning[(tuning.n_landmarks == n) & (tuning.snr_db == snr) & tuning.unrelated.astype(bool)]
     log_t = float(np.quantile(null.tri_log_nfa, quantile))
     path = out / f"calibrated_{n}_{snr:g}_{quantile:g}_{code_digest(detector.__file__)[:12]}.csv"
-    if path.is_file() and len(pd.read_csv(path)) == related + pairs:
-        rows = pd.read_csv(path)
-    else:
+    rows = pd.read_csv(path) if path.is_file() else None
+    if rows is None or len(rows) != related + pairs:
         seeds = [(False, REPORTED_SEED + k) for k in range(related)] + [(True, HOLDOUT_SEED + k) for k in range(pairs)]
         with triangle_acceptance(float(np.exp(log_t))):
             outcomes = [merge_outcome(n, snr, seed, unrelated) for unrelated, seed in seeds]

@@ -29,6 +29,8 @@ import sys
 import numpy as np
 import pandas as pd
 
+from experiments.intervals import wilson
+
 #: Columns that name a configuration (joined on) rather than a measurement.
 KEYS = ("kind", "cut", "source", "n_landmarks", "overlap", "snr_db", "SNR", "aspect", "unrelated", "layout",
         "p_detect", "clutter", "anisotropy", "method", "objective", "use_cov", "tau", "maximiser", "peer",
@@ -38,15 +40,6 @@ KEYS = ("kind", "cut", "source", "n_landmarks", "overlap", "snr_db", "SNR", "asp
 RATE = re.compile(r"(rate|^p_d$|^p_fa$|^precision$|^recall|found$|^success$)")
 #: The denominators, in order of preference.
 COUNTS = ("n_trials", "related_pairs", "pairs", "n_pairs", "trials", "teams")
-Z95 = 1.959963984540054
-
-
-def wilson(p: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The 95 % Wilson score interval of proportions p out of n."""
-    denom = 1 + Z95**2 / n
-    centre = (p + Z95**2 / (2 * n)) / denom
-    half = Z95 * np.sqrt(p * (1 - p) / n + Z95**2 / (4 * n**2)) / denom
-    return centre - half, centre + half
 
 
 def compare(old: pd.DataFrame, new: pd.DataFrame) -> dict:
@@ -64,7 +57,7 @@ def compare(old: pd.DataFrame, new: pd.DataFrame) -> dict:
     for c in rates:
         a, b = joined[f"{c}_old"].to_numpy(float), joined[f"{c}_new"].to_numpy(float)
         ok = np.isfinite(a) & np.isfinite(b) & (n > 0)
-        lo, hi = wilson(b[ok], n[ok])
+        lo, hi = wilson(b[ok] * n[ok], n[ok])
         outside = (a[ok] < lo - 1e-12) | (a[ok] > hi + 1e-12)
         out["cells"] += int(ok.sum())
         out["identical"] += int(np.sum(a[ok] == b[ok]))
