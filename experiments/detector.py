@@ -76,6 +76,7 @@ import itertools
 import json
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
@@ -226,16 +227,17 @@ def _recorded_tests():
     """Record consensus's two acceptance tests during ``merge_maps``.
 
     ``merge_maps`` returns the decision only; to see how far each stage was
-    from accepting, ``consensus.match_nfa`` and the fallback
+    from accepting, ``consensus.match_nfa_batch`` and the fallback
     ``search.search_pairs`` (both looked up at call time) are wrapped for
     the duration. Yields a dict: ``"triangles"``: (NFA, hypotheses, pairs,
     alignment) of the last triangle test, ``"search"``: the search's NFA.
+    The merge is of one map pair, so each batch holds one.
     """
-    seen, match_nfa, search_pairs = {}, mm.consensus.match_nfa, mm.search.search_pairs
+    seen, match_nfa_batch, search_pairs = {}, mm.consensus.match_nfa_batch, mm.search.search_pairs
 
-    def recorded_match_nfa(P, Q, alignment, pairs, n_hypotheses, *args, **kwargs):
-        nfa = match_nfa(P, Q, alignment, pairs, n_hypotheses, *args, **kwargs)
-        seen["triangles"] = (nfa, n_hypotheses, len(pairs), alignment)
+    def recorded_match_nfa_batch(P, Q, theta, t, cov, trial, pairs, n_hypotheses, *args, **kwargs):
+        nfa = match_nfa_batch(P, Q, theta, t, cov, trial, pairs, n_hypotheses, *args, **kwargs)
+        seen["triangles"] = (nfa[0], n_hypotheses[0], len(pairs), SimpleNamespace(theta=theta[0], t=t[0]))
         return nfa
 
     def recorded_search_pairs(*args, **kwargs):
@@ -243,11 +245,11 @@ def _recorded_tests():
         seen["search"] = out[2]
         return out
 
-    mm.consensus.match_nfa, mm.search.search_pairs = recorded_match_nfa, recorded_search_pairs
+    mm.consensus.match_nfa_batch, mm.search.search_pairs = recorded_match_nfa_batch, recorded_search_pairs
     try:
         yield seen
     finally:
-        mm.consensus.match_nfa, mm.search.search_pairs = match_nfa, search_pairs
+        mm.consensus.match_nfa_batch, mm.search.search_pairs = match_nfa_batch, search_pairs
 
 
 def search_hypotheses(P, Q, sigma: float) -> float:

@@ -36,10 +36,12 @@ def wrap_angle(theta):
     return np.where(wrapped <= -np.pi, wrapped + 2 * np.pi, wrapped)
 
 
-def rotation(theta: float) -> np.ndarray:
-    """The 2x2 rotation matrix R(θ) = [[cos θ, -sin θ], [sin θ, cos θ]]."""
+def rotation(theta) -> np.ndarray:
+    """The rotation matrix R(θ) = [[cos θ, -sin θ], [sin θ, cos θ]]: (2, 2), or (..., 2, 2) for an array θ."""
     c, s = np.cos(theta), np.sin(theta)
-    return np.array([[c, -s], [s, c]])
+    if np.ndim(theta) == 0:
+        return np.array([[c, -s], [s, c]])
+    return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
 
 
 def rotate(theta, x: np.ndarray) -> np.ndarray:
@@ -63,9 +65,7 @@ def covariance_in_p_frame(theta, cov: np.ndarray) -> np.ndarray:
 
     ``cov`` (..., n, 2, 2); θ a scalar or one per leading batch index.
     """
-    theta = np.asarray(theta, dtype=float)
-    c, s = np.cos(theta), np.sin(theta)
-    R = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)[..., None, :, :]
+    R = rotation(np.asarray(theta, dtype=float))[..., None, :, :]
     return np.swapaxes(R, -1, -2) @ cov @ R
 
 
@@ -244,21 +244,24 @@ def fused_covariances(mu: np.ndarray, theta: float, sigma: float, cov: np.ndarra
     return 0.5 * sigma**2 * np.eye(2) + 0.25 * G @ cov @ G.transpose(0, 2, 1)
 
 
-def mapped_covariance(x: np.ndarray, theta: float, cov: np.ndarray, own) -> np.ndarray:
-    """Covariance (m, 2, 2) of q landmarks mapped into p's frame, x = Rᵀ(q - t).
+def mapped_covariance(x: np.ndarray, theta, cov: np.ndarray, own) -> np.ndarray:
+    """Covariance (..., m, 2, 2) of q landmarks mapped into p's frame, x = Rᵀ(q - t).
 
-    ``own`` is the landmarks' own noise in q's frame: a variance per
-    coordinate (a scalar, or one per landmark) or full (m, 2, 2)
-    covariances; ``cov`` the (θ, t) covariance of the transform.
+    ``x`` (..., m, 2), ``theta`` (...) and ``cov`` (..., 3, 3), the (θ, t)
+    covariance of the transform, carry any leading batch axes (one transform
+    per map pair). ``own`` is the landmarks' own noise in q's frame: a
+    variance per coordinate broadcasting to (..., m) (a scalar, one per map
+    pair as (B, 1), or one per landmark) or full (..., m, 2, 2) covariances.
     """
-    G = np.concatenate([(-(x @ ROT90.T))[:, :, None], np.broadcast_to(-rotation(theta).T, (x.shape[0], 2, 2))],
-                       axis=2)
+    theta = np.asarray(theta, dtype=float)
+    R_t = np.swapaxes(rotation(theta), -1, -2)[..., None, :, :]
+    G = np.concatenate([(-(x @ ROT90.T))[..., None], np.broadcast_to(-R_t, x.shape + (2,))], axis=-1)
     own = np.asarray(own, dtype=float)
-    if own.ndim == 3:
+    if own.ndim == x.ndim + 1:
         own = covariance_in_p_frame(theta, own)
     else:
-        own = np.broadcast_to(own, (x.shape[0],))[:, None, None] * np.eye(2)
-    return own + G @ cov @ G.transpose(0, 2, 1)
+        own = np.broadcast_to(own, x.shape[:-1])[..., None, None] * np.eye(2)
+    return own + G @ np.asarray(cov)[..., None, :, :] @ np.swapaxes(G, -1, -2)
 
 
 def prediction_var(points: np.ndarray, alignment: Alignment) -> np.ndarray:
@@ -305,6 +308,20 @@ def transform_covariances(trial: np.ndarray, mu: np.ndarray, theta: np.ndarray, 
     info[:, 1, 1] = info[:, 2, 2] = np.bincount(trial, minlength=F)
     info[~fitted] = np.eye(3)  # any invertible matrix
     return 2.0 * np.asarray(sigma, dtype=float).reshape(-1, 1, 1) ** 2 * np.linalg.inv(info)
+
+
+def fit_alignments(trial: np.ndarray, P: np.ndarray, Q: np.ndarray, sigma, n_trials: int):
+    """θ*, t*, µ* and the (θ, t) covariance of ragged sets of paired points, one set per trial.
+
+    ``fit_transforms`` and ``transform_covariances`` in one: ``sigma`` a
+    scalar or one per trial. Returns theta (n_trials,), t (n_trials, 2), mu
+    (K, 2) and cov (n_trials, 3, 3), the last not to be read for a set of
+    fewer than 3 pairs.
+    """
+    theta, t, _ = fit_transforms(trial, P, Q, n_trials)
+    mu = 0.5 * (P + rotate(-theta[trial], (Q - t[trial])[:, None, :])[:, 0])
+    cov = transform_covariances(trial, mu, theta, sigma, np.bincount(trial, minlength=n_trials) >= 3)
+    return theta, t, mu, cov
 
 
 def align(P, Q, sigma=1.0) -> Alignment:
@@ -387,9 +404,7 @@ def reject_outliers_batch(P, Q, pair_trial, pairs, sigma, gate_p: float = 1e-3) 
         active = np.flatnonzero(rejecting)
         F = len(active)
         k, ak, bk = (np.cumsum(rejecting) - 1)[pair_trial[idx]], xp[idx], xq[idx]
-        theta, t, _ = fit_transforms(k, ak, bk, F)
-        mu = 0.5 * (ak + rotate(-theta[k], (bk - t[k])[:, None, :])[:, 0])
-        cov = transform_covariances(k, mu, theta, sigma[active], np.ones(F, dtype=bool))
+        theta, t, _, cov = fit_alignments(k, ak, bk, sigma[active], F)
         # prediction_var of each p point under its own map pair's fit, then its standardised residual.
         pred = prediction_vars(ak, theta[k], cov[k])
         resid = np.sum((bk - rotate(theta[k], ak[:, None, :])[:, 0] - t[k]) ** 2, axis=1)

@@ -43,10 +43,62 @@ SHARED_RANGE = (0.1, 0.99)
 PRIOR_ROUNDS = 3
 
 
-def own_covariances(cov, n: int, sigma: float) -> np.ndarray:
-    """The landmarks' covariances, σ² I when none are given."""
-    return np.broadcast_to(sigma**2 * np.eye(2), (n, 2, 2)) if cov is None else cov
+def own_covariances(cov, n: int, sigma) -> np.ndarray:
+    """The landmarks' covariances, σ² I when none are given: (n, 2, 2), or (B, n, 2, 2) for σ one per map pair."""
+    if cov is not None:
+        return cov
+    sigma = np.asarray(sigma, dtype=float)
+    return np.broadcast_to((sigma[..., None, None] ** 2 * np.eye(2))[..., None, :, :], sigma.shape + (n, 2, 2))
 
+
+def mapped_landmarks(Q, theta, t, cov, sigma, cov_q=None):
+    """q's landmarks in p's frame, x = R(θ)ᵀ (q - t), and their covariances there.
+
+    Batched over map pairs: ``Q`` (B, n_q, 2), ``theta`` (B,), ``t`` (B, 2),
+    ``cov`` (B, 3, 3) the transform's (θ, t) covariance, ``sigma`` (B,) and
+    ``cov_q`` (B, n_q, 2, 2) the landmarks' own noise (σ² I when None).
+    Returns x (B, n_q, 2) and cov_x (B, n_q, 2, 2).
+    """
+    x = (Q - t[:, None, :]) @ rotation(theta)
+    own = (np.asarray(sigma, dtype=float) ** 2)[:, None] if cov_q is None else cov_q
+    return x, mapped_covariance(x, theta, cov, own)
+
+
+#: Pairs of landmarks (over a batch of map pairs) whose distances are computed all at once when the
+#: candidates of associations are sought; larger maps are searched with a k-d tree, one map pair at a time.
+BRUTE_FORCE_PAIRS = 1 << 18
+
+
+def _close_pairs(P, x, radius):
+    """Every (map pair b, p landmark i, x landmark j) with ‖P[b, i] - x[b, j]‖ <= radius[b] (NaN: none)."""
+    B, n_p, n_q = P.shape[0], P.shape[1], x.shape[1]
+    if n_p * n_q > BRUTE_FORCE_PAIRS:
+        found = []
+        for b in np.flatnonzero(radius > 0):
+            cand = cKDTree(P[b]).sparse_distance_matrix(cKDTree(x[b]), radius[b], output_type="ndarray")
+            found.append((np.full(cand.size, b), cand["i"], cand["j"]))
+        return tuple(np.concatenate(parts).astype(np.intp) for parts in zip(*found)) if found else \
+            (np.empty(0, dtype=np.intp),) * 3
+    parts = []
+    step = max(1, BRUTE_FORCE_PAIRS // (n_p * n_q))
+    for a in range(0, B, step):
+        d2 = np.sum((P[a:a + step, :, None, :] - x[a:a + step, None, :, :]) ** 2, axis=-1)
+        b, i, j = np.nonzero(d2 <= (radius[a:a + step] ** 2)[:, None, None])
+        parts.append((b + a, i, j))
+    return tuple(np.concatenate(v).astype(np.intp) for v in zip(*parts))
+
+
+def _pair_log_odds(P, x, cov_p, cov_x, log_prior):
+    """``pair_log_odds`` of B map pairs at once: (b, i, j, log_odds), ``log_prior`` (B,)."""
+    det_min = np.linalg.det(cov_p).min(axis=1) + np.linalg.det(cov_x).min(axis=1)
+    largest = np.linalg.eigvalsh(cov_p)[..., 1].max(axis=1) + np.linalg.eigvalsh(cov_x)[..., 1].max(axis=1)
+    d2_max = 2 * (log_prior - np.log(2 * np.pi * np.sqrt(det_min)))
+    radius = np.where(d2_max > 0, np.sqrt(np.maximum(d2_max, 0) * largest), np.nan)
+    b, i, j = _close_pairs(P, x, radius)
+    C = cov_p[b, i] + cov_x[b, j]
+    e = P[b, i] - x[b, j]
+    d2 = np.einsum("ki,kij,kj->k", e, np.linalg.inv(C), e)
+    return b, i, j, -0.5 * d2 - np.log(2 * np.pi * np.sqrt(np.linalg.det(C)))
 
 
 def pair_log_odds(P, x, cov_p, cov_x, log_prior: float):
@@ -63,18 +115,8 @@ def pair_log_odds(P, x, cov_p, cov_x, log_prior: float):
     log_odds : (C,) ndarray
         ``log N(P_i - x_j; 0, cov_p[i] + cov_x[j])``.
     """
-    none = np.empty(0, dtype=np.intp)
-    det_min = np.linalg.det(cov_p).min() + np.linalg.det(cov_x).min()
-    largest = np.linalg.eigvalsh(cov_p)[:, 1].max() + np.linalg.eigvalsh(cov_x)[:, 1].max()
-    d2_max = 2 * (log_prior - np.log(2 * np.pi * np.sqrt(det_min)))
-    if d2_max <= 0:
-        return none, none, np.empty(0)
-    cand = cKDTree(P).sparse_distance_matrix(cKDTree(x), np.sqrt(d2_max * largest), output_type="ndarray")
-    i, j = cand["i"], cand["j"]
-    C = cov_p[i] + cov_x[j]
-    e = P[i] - x[j]
-    d2 = np.einsum("ki,kij,kj->k", e, np.linalg.inv(C), e)
-    return i, j, -0.5 * d2 - np.log(2 * np.pi * np.sqrt(np.linalg.det(C)))
+    _, i, j, log_odds = _pair_log_odds(P[None], x[None], cov_p[None], cov_x[None], np.array([log_prior]))
+    return i, j, log_odds
 
 
 def posterior_association(P, x, cov_p, cov_x, log_prior: float, with_margin: bool = True, candidates=None):
@@ -112,18 +154,21 @@ def posterior_association(P, x, cov_p, cov_x, log_prior: float, with_margin: boo
         otherwise (inf when no competing pairing exists); small margins mark
         pairs the data cannot tell from a swap. None unless ``with_margin``.
     """
-    empty = np.empty((0, 2), dtype=np.intp), (np.empty(0) if with_margin else None)
     i, j, log_odds = pair_log_odds(P, x, cov_p, cov_x, log_prior) if candidates is None else candidates
-    score = log_odds + log_prior
+    return _assign(i, j, log_odds + log_prior, len(P), len(x), with_margin)
+
+
+def _assign(i, j, score, n_p: int, n_q: int, with_margin: bool):
+    """``posterior_association``'s assignment of scored candidate pairs (i, j) over n_p x n_q landmarks."""
     keep = score > 0
     i, j, score = i[keep], j[keep], score[keep]
     if i.size == 0:
-        return empty
+        return np.empty((0, 2), dtype=np.intp), (np.empty(0) if with_margin else None)
     # The common case: a candidate alone in its row and column, a component of its own (no contest).
-    single = (np.bincount(i)[i] == 1) & (np.bincount(j)[j] == 1)
+    single = (np.bincount(i, minlength=n_p)[i] == 1) & (np.bincount(j, minlength=n_q)[j] == 1)
     p_of, q_of, margins = [i[single]], [j[single]], [np.full(int(single.sum()), np.inf)]
     i, j, score = i[~single], j[~single], score[~single]
-    comp = candidate_components(i, j, len(P), len(x)) if i.size else i
+    comp = candidate_components(i, j, n_p, n_q) if i.size else i
     for rows, cols, gain in component_blocks(i, j, score, comp, 0.0):
         r, c = linear_sum_assignment(gain, maximize=True)
         value = gain[r, c]
@@ -135,7 +180,6 @@ def posterior_association(P, x, cov_p, cov_x, log_prior: float, with_margin: boo
     pairs = np.stack([np.concatenate(p_of), np.concatenate(q_of)], axis=1).astype(np.intp)
     order = np.argsort(pairs[:, 0], kind="stable")
     return pairs[order], (np.concatenate(margins)[order] if with_margin else None)
-
 
 
 #: Components of more landmarks (rows or columns) than this get no margins: one assignment per pair would
@@ -165,11 +209,7 @@ def _margins(gain, r, c, best):
 def associate(P, Q, alignment, sigma, cov_p=None, cov_q=None, hulls=None, with_margin=True):
     """One-to-one landmark association under a fitted transform (``posterior_association``).
 
-    The pair covariance is p's noise plus q's brought into p's frame plus the
-    fitted transform's error at q_j; landmark noise is σ² I unless
-    ``cov_p``/``cov_q`` (n, 2, 2) are given. λ_q is q's landmark count over
-    its convex hull's area; π starts at ``SHARED_PRIOR`` and is re-estimated
-    from the association (``PRIOR_ROUNDS``).
+    One map pair's ``associate_batch``.
 
     Parameters
     ----------
@@ -194,32 +234,74 @@ def associate(P, Q, alignment, sigma, cov_p=None, cov_q=None, hulls=None, with_m
         Pairs whose best alternative assignment is within ``AMBIGUITY`` in
         log-likelihood (e.g. two landmarks closer than the noise, which can swap).
     """
-    x = (Q - alignment.t) @ rotation(alignment.theta)
-    cov_x = mapped_covariance(x, alignment.theta, alignment.cov, sigma**2 if cov_q is None else cov_q)
-    cov_p = own_covariances(cov_p, len(P), sigma)
-    hull_p, hull_q = (ConvexHull(P), ConvexHull(Q)) if hulls is None else hulls
-    log_density = np.log(len(Q) / hull_q.volume)
-    inside = inside_hull(hull_p, x)
+    one = (lambda a: None if a is None else np.asarray(a)[None])
+    _, pairs, contested = associate_batch(
+        P[None], Q[None], np.array([alignment.theta], dtype=float), one(alignment.t), one(alignment.cov),
+        np.array([sigma], dtype=float), one(cov_p), one(cov_q), None if hulls is None else [hulls], with_margin)
+    return pairs, contested
+
+
+def associate_batch(P, Q, theta, t, cov, sigma, cov_p=None, cov_q=None, hulls=None, with_margin=True):
+    """One-to-one landmark association of B map pairs, each under its own fitted transform.
+
+    The pair covariance is p's noise plus q's brought into p's frame plus the
+    fitted transform's error at q_j; landmark noise is σ² I unless
+    ``cov_p``/``cov_q`` are given. λ_q is q's landmark count over its convex
+    hull's area; π starts at ``SHARED_PRIOR`` and is re-estimated from the
+    association (``PRIOR_ROUNDS``), per map pair. The map pairs' landmarks
+    are numbered apart, so one assignment problem holds them all and no
+    landmark competes with another map pair's.
+
+    Parameters
+    ----------
+    P, Q : (B, n_p, 2), (B, n_q, 2) ndarray
+    theta, t, cov : (B,), (B, 2), (B, 3, 3) ndarray
+        Each map pair's transform and its (θ, t) covariance.
+    sigma : (B,) ndarray
+    cov_p, cov_q : (B, n, 2, 2) ndarray, optional
+    hulls : list of (ConvexHull, ConvexHull), optional
+        The convex hulls of each P and Q, when the caller has them.
+    with_margin : bool, default True
+        Find the contested pairs; without, ``contested`` is None.
+
+    Returns
+    -------
+    trial : (K,) int ndarray
+        Map pair of each association.
+    pairs : (K, 2) int ndarray
+        Landmark pairs (p, q), sorted by map pair, then p index.
+    contested : (K,) bool ndarray or None
+    """
+    B, n_p, n_q = P.shape[0], P.shape[1], Q.shape[1]
+    x, cov_x = mapped_landmarks(Q, theta, t, cov, sigma, cov_q)
+    cov_p = own_covariances(cov_p, n_p, sigma)
+    hulls = [(ConvexHull(P[b]), ConvexHull(Q[b])) for b in range(B)] if hulls is None else hulls
+    log_density = np.log(n_q / np.array([hull_q.volume for _, hull_q in hulls]))
+    inside = np.stack([inside_hull(hull_p, x[b]) for b, (hull_p, _) in enumerate(hulls)])
     # The pair covariance of each q landmark among p's, with a typical p landmark.
-    det_pair = np.linalg.det(cov_x[inside] + np.median(cov_p, axis=0))
-    shared = SHARED_PRIOR
+    det_pair = np.linalg.det(cov_x + np.median(cov_p, axis=1)[:, None])
+    shared = np.full(B, SHARED_PRIOR)
     # The candidates of the largest prior any round can reach serve every round.
-    candidates = pair_log_odds(P, x, cov_p, cov_x, np.log(SHARED_RANGE[1] / (1 - SHARED_RANGE[1])) - log_density)
+    b, i, j, log_odds = _pair_log_odds(P, x, cov_p, cov_x,
+                                       np.log(SHARED_RANGE[1] / (1 - SHARED_RANGE[1])) - log_density)
+    i, j = b * n_p + i, b * n_q + j
     for round_ in range(1, PRIOR_ROUNDS + 1):
         log_prior = np.log(shared / (1 - shared)) - log_density
         # Only the association returned needs its margins.
-        pairs, margin = posterior_association(P, x, cov_p, cov_x, log_prior,
-                                              with_margin=with_margin and round_ == PRIOR_ROUNDS,
-                                              candidates=candidates)
+        pairs, margin = _assign(i, j, log_odds + log_prior[b], B * n_p, B * n_q,
+                                with_margin and round_ == PRIOR_ROUNDS)
+        trial = pairs[:, 0] // n_p
         if round_ == PRIOR_ROUNDS:
             break
         # π re-estimated as the paired share of q's landmarks among p's, over the share of
         # shared ones the association can pair at this π: a true pair scores above "unshared"
         # within the Mahalanobis radius d², which it falls inside with probability 1 - exp(-d²/2).
-        d2 = np.maximum(2 * (log_prior - np.log(2 * np.pi * np.sqrt(det_pair))), 0.0)
-        recall = np.sum(1 - np.exp(-d2 / 2))
-        shared = float(np.clip(np.sum(inside[pairs[:, 1]]) / max(recall, 1e-9), *SHARED_RANGE))
-    return pairs, (margin < AMBIGUITY if with_margin else None)
+        d2 = np.maximum(2 * (log_prior[:, None] - np.log(2 * np.pi * np.sqrt(det_pair))), 0.0)
+        recall = np.sum(np.where(inside, 1 - np.exp(-d2 / 2), 0.0), axis=1)
+        paired = np.bincount(trial, inside.ravel()[pairs[:, 1]], minlength=B)
+        shared = np.clip(paired / np.maximum(recall, 1e-9), *SHARED_RANGE)
+    pairs = pairs - trial[:, None] * np.array([n_p, n_q])
+    return trial, pairs, (margin < AMBIGUITY if with_margin else None)
 
 
 

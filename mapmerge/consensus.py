@@ -33,7 +33,6 @@ When the triangles give no significant match, ``consensus_merge`` runs its
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,10 +40,10 @@ from scipy.spatial import ConvexHull
 from scipy.special import chdtri, gammaln
 
 from .alignment import (
-    align_pairs, fit_transforms, mapped_covariance, paired_transforms, prediction_var, prediction_vars,
-    reject_outliers, rotate, rotation, transform_covariances, wrap_angle,
+    align_pairs, fit_alignments, paired_transforms, prediction_var, prediction_vars, reject_outliers_batch,
+    rotation, transform_covariances, wrap_angle,
 )
-from .association import SHARED_PRIOR, associate, declared_triangles, own_covariances
+from .association import SHARED_PRIOR, associate_batch, declared_triangles, mapped_landmarks, own_covariances
 from .exhaustive import Mixture, bump_height, inside_hull, pair_noise
 from .correspondence import correspondences, resolve_correspondences
 from .matching import TriangleMatch
@@ -167,15 +166,13 @@ def _refit_groups(cand: _Pool, inliers, gate):
                                          scores[members])
     (kp, kq), owner = uniq[keep].T, uniq[keep, 0] // n_p  # owner: the hypothesis of each correspondence
     xp, xq = P[kp % n_p], Q[kq % n_q]
-    theta, t, _ = fit_transforms(owner, xp, xq, len(inliers))
-    enough = np.bincount(owner, minlength=len(inliers)) >= 3
-    fitted = np.flatnonzero(enough)
+    fitted = np.flatnonzero(np.bincount(owner, minlength=len(inliers)) >= 3)
     if fitted.size == 0:
         return []
-    cp, cq = P[vp[pool]], Q[vq[pool]]
     # Every fit's (θ, t) covariance and prediction variance at once (``Alignment.cov``, ``prediction_var``).
-    mu = 0.5 * (xp + rotate(-theta[owner], (xq - t[owner])[:, None, :])[:, 0])
-    cov = transform_covariances(owner, mu, theta, sigma, enough)[fitted]
+    theta, t, _, cov = fit_alignments(owner, xp, xq, sigma, len(inliers))
+    cov = cov[fitted]
+    cp, cq = P[vp[pool]], Q[vq[pool]]
     var = 2 * sigma**2 + prediction_vars(cp[None], theta[fitted], cov)
     inside = _gate_d2(cp, cq, theta[fitted], t[fitted], var) <= gate
     return [pool[row] for row in inside]
@@ -254,88 +251,151 @@ def match_nfa(P, Q, alignment, pairs, n_hypotheses: int, sigma: float, *, cov_p=
     with ``n_hypotheses`` hypotheses tried, NFA is the smallest
     ``n_hypotheses · C(N, k - 3) · α(d²_(k))^(k-3)`` over k. A match with
     NFA <= ``MATCH_NFA`` is expected to arise by chance at most that often.
-    ``hull``: P's convex hull, when the caller has it.
+    ``hull``: P's convex hull, when the caller has it. One map pair's
+    ``match_nfa_batch``.
     """
-    cov_p = own_covariances(cov_p, len(P), sigma)
-    x = (Q - alignment.t) @ rotation(alignment.theta)
-    cov_x = mapped_covariance(x, alignment.theta, alignment.cov, sigma**2 if cov_q is None else cov_q)
-    cov = cov_x + np.median(np.trace(cov_p, axis1=1, axis2=2) / 2) * np.eye(2)  # a typical p landmark
-    hull = ConvexHull(P) if hull is None else hull
-    inside = inside_hull(hull, x)
-    density = P.shape[0] / hull.volume  # a 2-D hull's "volume" is its area
-    unit_area = density * np.pi * np.sqrt(np.linalg.det(cov[inside | np.isin(np.arange(len(Q)), pairs[:, 1])])).mean()
-    e = P[pairs[:, 0]] - x[pairs[:, 1]]
-    cov_pairs = cov_x[pairs[:, 1]] + cov_p[pairs[:, 0]]
-    d2 = np.sort(np.einsum("ki,kij,kj->k", e, np.linalg.inv(cov_pairs), e))
-    n_in = max(int(inside.sum()), len(pairs))
-    k = np.arange(4, len(pairs) + 1)
-    free = k - 3
-    alpha = np.minimum(1.0, unit_area * d2[k - 1])
-    log_comb = gammaln(n_in + 1) - gammaln(free + 1) - gammaln(n_in - free + 1)
-    log_nfa = np.log(n_hypotheses) + log_comb + free * np.log(np.maximum(alpha, 1e-300))
-    return float(np.exp(log_nfa.min())) if k.size else float(n_hypotheses)
+    one = (lambda a: None if a is None else np.asarray(a)[None])
+    return float(match_nfa_batch(P[None], Q[None], np.array([alignment.theta], dtype=float), one(alignment.t),
+                                 one(alignment.cov), np.zeros(len(pairs), dtype=np.intp), pairs,
+                                 np.array([n_hypotheses]), np.array([sigma], dtype=float), one(cov_p), one(cov_q),
+                                 None if hull is None else [hull])[0])
 
 
-
-def _mixture_associate(P, Q, pairs, sigma, cov_p, cov_q, hulls):
-    """Associate again at the mixture model's maximum-likelihood transform.
-
-    Below about 15 dB a tenth of the associations can be wrong, and the fit
-    over them is biased by degrees, which in turn pairs landmarks wrongly.
-    EM on the mixture of ``mapmerge.exhaustive`` (every mapped q landmark a
-    noisy copy of one p landmark or unshared) weighs each possible partner
-    by its posterior instead of trusting one hard pairing.
-    """
-    al = align_pairs(P[pairs[:, 0]], Q[pairs[:, 1]], sigma)
-    s, hull = pair_noise(sigma, cov_p, cov_q), hulls[0]
-    theta, t = Mixture.of_map(P, s, bump_height(len(P), hull.volume, s, SHARED_PRIOR), SHARED_PRIOR, hull).em(
-        Q, al.theta, al.t)
-    return associate(P, Q, dataclasses.replace(al, theta=theta, t=t), sigma, cov_p, cov_q, hulls)
-
-
-def consensus_pairs(P, Q, sigma, vp, vq, scores, cov_p=None, cov_q=None):
-    """Landmark associations of one map pair from its candidate triangle pairs.
+def match_nfa_batch(P, Q, theta, t, cov, trial, pairs, n_hypotheses, sigma, cov_p=None, cov_q=None,
+                    hulls=None) -> np.ndarray:
+    """``match_nfa`` of B map pairs at once, each with its own transform and associations.
 
     Parameters
     ----------
-    P, Q : ndarray
-        The maps.
-    sigma : float
-    vp, vq : (C, 3) int ndarray
-        Candidate triangle pairs (passing log τ), vertices paired.
-    scores : (C,) ndarray
-        Their log Λ.
-    cov_p, cov_q : (n, 2, 2) ndarray, optional
-        Per-landmark covariances used by the association and the
-        significance test instead of σ² I.
+    P, Q : (B, n_p, 2), (B, n_q, 2) ndarray
+    theta, t, cov : (B,), (B, 2), (B, 3, 3) ndarray
+        Each map pair's fitted transform and its (θ, t) covariance.
+    trial, pairs : (K,), (K, 2) int ndarray
+        The associations (p index, q index) and their map pair; at least 3 per map pair.
+    n_hypotheses, sigma : (B,) ndarray
+    cov_p, cov_q : (B, n, 2, 2) ndarray, optional
+    hulls : list of ConvexHull, optional
+        Each P's convex hull.
 
     Returns
     -------
-    pairs : (K, 2) int ndarray
-        Associations (empty when the match is not significant).
-    contested : (K,) bool ndarray
-        Associations the data cannot tell from a runner-up.
-    n_conflicts : int
+    (B,) ndarray
+        NFA of each map pair's match.
     """
-    pairs, n_conflicts = np.empty((0, 2), dtype=np.intp), 0
-    if len(scores) >= MIN_CONSENSUS:
-        group = _consensus(vp, vq, P, Q, scores, sigma)
+    B = len(P)
+    cov_p = own_covariances(cov_p, P.shape[1], sigma)
+    x, cov_x = mapped_landmarks(Q, theta, t, cov, sigma, cov_q)
+    typical = np.median(np.trace(cov_p, axis1=-2, axis2=-1) / 2, axis=1)  # a typical p landmark
+    hulls = [ConvexHull(P[b]) for b in range(B)] if hulls is None else hulls
+    inside = np.stack([inside_hull(hull, x[b]) for b, hull in enumerate(hulls)])
+    density = P.shape[1] / np.array([hull.volume for hull in hulls])  # a 2-D hull's "volume" is its area
+    counted = inside.copy()
+    counted[trial, pairs[:, 1]] = True
+    root_det = np.sqrt(np.linalg.det(cov_x + typical[:, None, None, None] * np.eye(2)))
+    unit_area = density * np.pi * np.sum(root_det, axis=1, where=counted) / counted.sum(axis=1)
+    e = P[trial, pairs[:, 0]] - x[trial, pairs[:, 1]]
+    cov_pairs = cov_x[trial, pairs[:, 1]] + cov_p[trial, pairs[:, 0]]
+    d2 = np.einsum("ki,kij,kj->k", e, np.linalg.inv(cov_pairs), e)
+    order = np.lexsort((d2, trial))
+    trial, d2 = trial[order], d2[order]
+    count = np.bincount(trial, minlength=B)
+    k = np.arange(len(trial)) - (np.cumsum(count) - count)[trial] + 1  # rank within the map pair
+    use = k >= 4
+    trial, free, d2 = trial[use], k[use] - 3, d2[use]
+    n_in = np.maximum(inside.sum(axis=1), count)[trial]
+    alpha = np.minimum(1.0, unit_area[trial] * d2)
+    log_comb = gammaln(n_in + 1) - gammaln(free + 1) - gammaln(n_in - free + 1)
+    log_nfa = np.full(B, np.inf)
+    np.minimum.at(log_nfa, trial, np.log(n_hypotheses[trial]) + log_comb + free * np.log(np.maximum(alpha, 1e-300)))
+    return np.where(np.isfinite(log_nfa), np.exp(log_nfa), np.asarray(n_hypotheses, dtype=float))
+
+
+def _triangle_correspondences(P, Q, sigma, match: TriangleMatch, log_tau):
+    """Each map pair's landmark correspondences from its largest transform-consistent group of
+    candidate triangle pairs (``_consensus``), outliers rejected.
+
+    Returns (trial, pairs) of the correspondences, the conflicts of each map
+    pair and its number of candidates (the hypotheses tried).
+    """
+    B = len(P)
+    passing = np.flatnonzero(match.log_lr >= log_tau[match.trial])
+    bounds = np.searchsorted(match.trial[passing], np.arange(B + 1))
+    n_candidates, n_conflicts = np.diff(bounds), np.zeros(B, dtype=np.intp)
+    trials, found = [np.empty(0, dtype=np.intp)], [np.empty((0, 2), dtype=np.intp)]
+    for b in np.flatnonzero(n_candidates >= MIN_CONSENSUS):
+        cand = passing[bounds[b]:bounds[b + 1]]
+        vp, vq, scores = match.p_vertices[cand], match.q_vertices[cand], match.log_lr[cand]
+        group = _consensus(vp, vq, P[b], Q[b], scores, float(sigma[b]))
         if group.size >= MIN_CONSENSUS:
-            pairs, n_conflicts = correspondences(vp[group], vq[group], scores[group])
-            pairs = reject_outliers(P, Q, pairs, sigma, GATE_P)
-    hulls = (ConvexHull(P), ConvexHull(Q)) if pairs.shape[0] >= 3 else None
+            pairs, n_conflicts[b] = correspondences(vp[group], vq[group], scores[group])
+            trials.append(np.full(len(pairs), b, dtype=np.intp))
+            found.append(pairs)
+    trial, pairs = np.concatenate(trials), np.concatenate(found).astype(np.intp)
+    keep = reject_outliers_batch(P, Q, trial, pairs, sigma, GATE_P)
+    return trial[keep], pairs[keep], n_conflicts, n_candidates
+
+
+def _fitted(P, Q, sigma, trial, pairs):
+    """The map pairs with at least 3 associations, their associations renumbered to them and the n-point
+    fit of each: (active, local trial, pairs, θ, t, µ, (θ, t) covariance)."""
+    count = np.bincount(trial, minlength=len(P))
+    active = np.flatnonzero(count >= 3)
+    use = count[trial] >= 3
+    local, pairs = (np.cumsum(count >= 3) - 1)[trial[use]], pairs[use]
+    theta, t, mu, cov = fit_alignments(local, P[trial[use], pairs[:, 0]], Q[trial[use], pairs[:, 1]],
+                                       sigma[active], len(active))
+    return active, local, pairs, theta, t, mu, cov
+
+
+def _associate_fitted(P, Q, sigma, trial, pairs, cov_p, cov_q, hulls, *, mixture: bool, with_margin: bool):
+    """Associate every landmark of each map pair with at least 3 associations under their fit.
+
+    With ``mixture``, the transform first moves to the maximum of the mixture
+    likelihood of ``mapmerge.exhaustive`` (EM). Below about 15 dB a tenth of
+    the associations can be wrong, and the fit over them is biased by
+    degrees, which in turn pairs landmarks wrongly; EM weighs each possible
+    partner by its posterior instead of trusting one hard pairing.
+    """
+    active, local, pairs, theta, t, mu, cov = _fitted(P, Q, sigma, trial, pairs)
+    if active.size == 0:
+        return active, pairs, np.empty(0, dtype=bool)
+    if mixture:
+        for a, b in enumerate(active):
+            cp, cq = (None, None) if cov_p is None else (cov_p[b], cov_q[b])
+            s, hull = pair_noise(float(sigma[b]), cp, cq), hulls[b][0]
+            model = Mixture.of_map(P[b], s, bump_height(P.shape[1], hull.volume, s, SHARED_PRIOR), SHARED_PRIOR, hull)
+            theta[a], t[a] = model.em(Q[b], theta[a], t[a])
+        cov = transform_covariances(local, mu, theta, sigma[active], np.ones(len(active), dtype=bool))
+    sub = (lambda a: None if a is None else a[active])
+    tr, pairs, contested = associate_batch(P[active], Q[active], theta, t, cov, sigma[active], sub(cov_p),
+                                           sub(cov_q), [hulls[b] for b in active], with_margin)
+    return active[tr], pairs, contested
+
+
+def _verified_pairs(P, Q, sigma, trial, pairs, n_hypotheses, cov_p, cov_q):
+    """Each map pair's associations from its triangle correspondences, kept only where significant.
+
+    Associate under the correspondences' fit (``ASSOCIATION_ROUNDS`` times),
+    then at the mixture's maximum-likelihood transform, and accept a map
+    pair's associations only if its ``match_nfa`` is at most ``MATCH_NFA``.
+    Returns (trial, pairs, contested) of the accepted associations.
+    """
+    hulls = {b: (ConvexHull(P[b]), ConvexHull(Q[b])) for b in np.flatnonzero(np.bincount(trial, minlength=len(P)) >= 3)}
     # These rounds' contested pairs are never returned: the mixture step associates again.
     for _ in range(ASSOCIATION_ROUNDS):
-        if pairs.shape[0] < 3:
-            break
-        pairs, _ = associate(P, Q, align_pairs(P[pairs[:, 0]], Q[pairs[:, 1]], sigma), sigma, cov_p, cov_q, hulls,
-                             with_margin=False)
-    if pairs.shape[0] >= 3:
-        pairs, contested = _mixture_associate(P, Q, pairs, sigma, cov_p, cov_q, hulls)
-    if pairs.shape[0] < 3 or match_nfa(P, Q, align_pairs(P[pairs[:, 0]], Q[pairs[:, 1]], sigma), pairs,
-                                       len(scores), sigma, cov_p=cov_p, cov_q=cov_q, hull=hulls[0]) > MATCH_NFA:
-        return np.empty((0, 2), dtype=np.intp), np.empty(0, dtype=bool), n_conflicts
-    return pairs, contested, n_conflicts
+        trial, pairs, _ = _associate_fitted(P, Q, sigma, trial, pairs, cov_p, cov_q, hulls, mixture=False,
+                                            with_margin=False)
+    trial, pairs, contested = _associate_fitted(P, Q, sigma, trial, pairs, cov_p, cov_q, hulls, mixture=True,
+                                                with_margin=True)
+    active, local, kept, theta, t, _, cov = _fitted(P, Q, sigma, trial, pairs)
+    contested = contested[np.bincount(trial, minlength=len(P))[trial] >= 3]
+    if active.size == 0:
+        return trial[:0], kept, contested
+    sub = (lambda a: None if a is None else a[active])
+    nfa = match_nfa_batch(P[active], Q[active], theta, t, cov, local, kept, n_hypotheses[active], sigma[active],
+                          sub(cov_p), sub(cov_q), [hulls[b][0] for b in active])
+    accepted = (nfa <= MATCH_NFA)[local]
+    return active[local][accepted], kept[accepted], contested[accepted]
 
 
 def consensus_merge(P, Q, sigma, match: TriangleMatch, log_tau, cov_p=None, cov_q=None,
@@ -363,22 +423,24 @@ def consensus_merge(P, Q, sigma, match: TriangleMatch, log_tau, cov_p=None, cov_
         tentative pairs, undeclared, so that their labels still count as
         misses or true negatives.
     """
+    trial, pairs, n_conflicts, n_candidates = _triangle_correspondences(P, Q, sigma, match, log_tau)
+    trial, pairs, contested = _verified_pairs(P, Q, sigma, trial, pairs, n_candidates, cov_p, cov_q)
+    bounds = np.searchsorted(trial, np.arange(len(P) + 1))
+    match_bounds = np.searchsorted(match.trial, np.arange(len(P) + 1))
     parts = []
     for b in range(len(P)):
-        sel = match.trial == b
-        passing = sel & (match.log_lr >= log_tau[b])
-        vp, vq, scores = match.p_vertices[passing], match.q_vertices[passing], match.log_lr[passing]
-        cp, cq = (None, None) if cov_p is None else (cov_p[b], cov_q[b])
-        pairs, contested, n_conflicts = consensus_pairs(P[b], Q[b], float(sigma[b]), vp, vq, scores, cp, cq)
-        if len(pairs) == 0 and fallback is not None:
-            pairs, contested, _ = fallback(P[b], Q[b], float(sigma[b]), cp, cq)
+        pairs_b, contested_b = pairs[bounds[b]:bounds[b + 1]], contested[bounds[b]:bounds[b + 1]]
+        if len(pairs_b) == 0 and fallback is not None:
+            cp, cq = (None, None) if cov_p is None else (cov_p[b], cov_q[b])
+            pairs_b, contested_b, _ = fallback(P[b], Q[b], float(sigma[b]), cp, cq)
         tri_p, tri_q = match.tri_p[b].vertices, match.tri_q[b].vertices
+        sel = slice(match_bounds[b], match_bounds[b + 1])
         lp_pairs, lp_scores = match.triangle_pairs[sel], match.log_lr[sel]
-        tri_pairs, tri_scores = declared_triangles(tri_p, tri_q, pairs[~contested], P[b], Q[b], float(sigma[b]))
+        tri_pairs, tri_scores = declared_triangles(tri_p, tri_q, pairs_b[~contested_b], P[b], Q[b], float(sigma[b]))
         rest = ~np.isin(lp_pairs @ [len(tri_q), 1], tri_pairs @ [len(tri_q), 1])
         parts.append((np.concatenate([tri_pairs, lp_pairs[rest]]).astype(np.intp),
                       np.concatenate([tri_scores, lp_scores[rest]]),
                       np.r_[np.ones(len(tri_pairs), bool), np.zeros(int(rest.sum()), bool)],
-                      pairs, n_conflicts))
+                      pairs_b, int(n_conflicts[b])))
     return build_from_parts(method="consensus", P=P, Q=Q, sigma=sigma, log_tau=log_tau, tri_p=match.tri_p,
                             tri_q=match.tri_q, parts=parts)

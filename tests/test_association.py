@@ -57,3 +57,17 @@ def test_posterior_association_margins_are_optional():
     fast, none = posterior_association(sc.p, x, cov, cov, np.log(4.0) - np.log(sc.density), with_margin=False)
     np.testing.assert_array_equal(fast, pairs)
     assert none is None and len(margin) == len(pairs) and np.any(np.isfinite(margin))
+
+
+def test_associate_batch_is_each_map_pair_associated_alone():
+    # A batch numbers the map pairs' landmarks apart: no landmark may compete with another pair's,
+    # and π is estimated per pair, so the batch must give exactly the pairs' own associations.
+    scs = [mm.simulate.make_pair(30, 0.75, snr, rng=seed) for seed, snr in enumerate((10.0, 20.0, 30.0))]
+    cov = np.diag([1e-4, 1e-2, 1e-2])  # an imperfect fit, so the gate widens with distance
+    trial, pairs, contested = mm.association.associate_batch(
+        np.stack([sc.p for sc in scs]), np.stack([sc.q for sc in scs]), np.array([sc.theta for sc in scs]),
+        np.stack([sc.t for sc in scs]), np.stack([cov] * 3), np.array([sc.sigma for sc in scs]))
+    for b, sc in enumerate(scs):
+        alone, alone_contested = associate(sc.p, sc.q, KnownTransform(sc.theta, sc.t, cov), sc.sigma)
+        np.testing.assert_array_equal(pairs[trial == b], alone)
+        np.testing.assert_array_equal(contested[trial == b], alone_contested)

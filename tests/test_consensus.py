@@ -108,3 +108,24 @@ def test_hypotheses_refitted_together_give_the_groups_refitted_one_at_a_time(mon
         alone = [group for k in range(len(inliers)) for group in refit(*head, inliers[k:k + 1], gate)]
         assert len(alone) == len(groups)
         assert all(np.array_equal(a, b) for a, b in zip(alone, groups))
+
+
+def test_match_nfa_batch_is_each_map_pair_tested_alone():
+    from mapmerge.consensus import match_nfa, match_nfa_batch
+
+    scs = [mm.simulate.make_pair(20, 0.75, snr, rng=seed, unrelated=seed == 1)
+           for seed, snr in enumerate((30.0, 30.0, 20.0))]
+    known = [metrics.KnownTransform(sc.theta if np.isfinite(sc.theta) else 0.3,
+                                    sc.t if np.all(np.isfinite(sc.t)) else np.zeros(2), np.diag([1e-4, 1e-2, 1e-2]))
+             for sc in scs]
+    found = [mm.association.associate(sc.p, sc.q, al, sc.sigma)[0] for sc, al in zip(scs, known)]
+    found = [f if len(f) >= 3 else np.array([[0, 0], [1, 1], [2, 2]]) for f in found]
+    n_hyp = np.array([50, 7, 1000])
+    nfa = match_nfa_batch(np.stack([sc.p for sc in scs]), np.stack([sc.q for sc in scs]),
+                          np.array([al.theta for al in known]), np.stack([al.t for al in known]),
+                          np.stack([al.cov for al in known]),
+                          np.concatenate([np.full(len(f), b) for b, f in enumerate(found)]), np.concatenate(found),
+                          n_hyp, np.array([sc.sigma for sc in scs]))
+    alone = [match_nfa(sc.p, sc.q, al, f, h, sc.sigma) for sc, al, f, h in zip(scs, known, found, n_hyp)]
+    np.testing.assert_allclose(nfa, alone, rtol=1e-12)
+    assert nfa[0] < 1e-6 and nfa[1] > 1e-3  # the related pair is significant, the unrelated one is not
