@@ -44,7 +44,7 @@ from scipy.spatial import ConvexHull
 
 from ._validation import check_points, check_sigma
 from .alignment import rotate
-from .neighbours import CellGrid, cell_grid, count_within, njit, pairs_within
+from .neighbours import CellGrid, cell_grid, njit, pairs_within
 
 #: Translation cells, in units of s.
 GRID_STEP = 0.5
@@ -226,10 +226,10 @@ class Mixture:
         weight = np.tile(area, len(centres)) * len(P) / len(centres)
         keep = inside_hull(hull, x)
         x, weight = x[keep], weight[keep]
-        g = np.log1p(self.c * bump_sums(x, s, radius, *self.grid.arrays()))
         # A node lies in the discs of `cover` landmarks: its weight is shared among them (a partition of
         # unity over every landmark's disc, so a subsample of centres, scaled up, is unbiased).
-        cover = count_within(x, self.grid, radius * (1 + 1e-9))
+        bumps, cover = _bumps_and_cover(x, s, radius, radius * (1 + 1e-9), *self.grid.arrays())
+        g = np.log1p(self.c * bumps)
         weight = weight / (cover * hull.volume)
         # Any λ gives a bound: a coarse grid only loosens the best one slightly.
         lam = np.geomspace(0.02, 20.0, CHERNOFF_POINTS)
@@ -282,6 +282,19 @@ def bump_sums(x, s, radius, points, index, keys, ox, oy, h, nx, ny):
         for n in range(start[j], start[j + 1]):
             out[j] += np.exp(-d2[n] / (2 * s * s))
     return out
+
+
+@njit(cache=True)
+def _bumps_and_cover(x, s, radius, cover_radius, points, index, keys, ox, oy, h, nx, ny):
+    """``bump_sums`` within ``radius`` and the count of the grid's points within ``cover_radius`` (>= radius)
+    of each x_j, from one neighbour search (the quadrature needs both at every node)."""
+    start, _, d2 = pairs_within(x, points, index, keys, ox, oy, h, nx, ny, cover_radius)
+    out = np.zeros(x.shape[0])
+    for j in range(x.shape[0]):
+        for n in range(start[j], start[j + 1]):
+            if d2[n] <= radius * radius:
+                out[j] += np.exp(-d2[n] / (2 * s * s))
+    return out, np.diff(start)
 
 
 @njit(cache=True)

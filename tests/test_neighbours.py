@@ -51,3 +51,15 @@ def test_compiled_mixture_kernels_equal_their_python_source():
     x = sc.q[:20]
     np.testing.assert_allclose(exhaustive.bump_sums(x, s, 5 * s, *model.grid.arrays()),
                                exhaustive.bump_sums.py_func(x, s, 5 * s, *model.grid.arrays()), rtol=1e-12)
+
+
+def test_quadrature_bumps_and_cover_are_the_two_searches_in_one():
+    sc = mm.simulate.make_pair(40, 0.75, 20, rng=4)
+    s = np.sqrt(2) * sc.sigma
+    model = exhaustive.Mixture.of_map(sc.p, s, exhaustive.bump_height(sc.density, 1.0, s, 0.5), 0.5)
+    x = np.concatenate([sc.q, sc.p + 2 * s])
+    radius = exhaustive.EXACT_RADIUS * s
+    bumps, cover = exhaustive._bumps_and_cover(x, s, 0.5 * radius, radius, *model.grid.arrays())
+    np.testing.assert_array_equal(bumps, exhaustive.bump_sums(x, s, 0.5 * radius, *model.grid.arrays()))
+    np.testing.assert_array_equal(cover, neighbours.count_within(x, model.grid, radius))
+    assert cover.sum() > np.count_nonzero(bumps)  # the two radii differ, so the test can tell them apart
