@@ -335,6 +335,11 @@ def _triangle_correspondences(P, Q, sigma, match: TriangleMatch, log_tau):
     return trial[keep], pairs[keep], n_conflicts, n_candidates
 
 
+def _rows(cov, rows):
+    """The optional per-landmark covariances of the map pairs ``rows`` (None stays None)."""
+    return None if cov is None else cov[rows]
+
+
 def _fitted(P, Q, sigma, trial, pairs):
     """The map pairs with at least 3 associations, their associations renumbered to them and the n-point
     fit of each: (active, local trial, pairs, θ, t, µ, (θ, t) covariance)."""
@@ -366,9 +371,8 @@ def _associate_fitted(P, Q, sigma, trial, pairs, cov_p, cov_q, hulls, *, mixture
             model = Mixture.of_map(P[b], s, bump_height(P.shape[1], hull.volume, s, SHARED_PRIOR), SHARED_PRIOR, hull)
             theta[a], t[a] = model.em(Q[b], theta[a], t[a])
         cov = transform_covariances(local, mu, theta, sigma[active], np.ones(len(active), dtype=bool))
-    sub = (lambda a: None if a is None else a[active])
-    tr, pairs, contested = associate_batch(P[active], Q[active], theta, t, cov, sigma[active], sub(cov_p),
-                                           sub(cov_q), [hulls[b] for b in active], with_margin)
+    tr, pairs, contested = associate_batch(P[active], Q[active], theta, t, cov, sigma[active], _rows(cov_p, active),
+                                           _rows(cov_q, active), [hulls[b] for b in active], with_margin)
     return active[tr], pairs, contested
 
 
@@ -391,9 +395,8 @@ def _verified_pairs(P, Q, sigma, trial, pairs, n_hypotheses, cov_p, cov_q):
     contested = contested[np.bincount(trial, minlength=len(P))[trial] >= 3]
     if active.size == 0:
         return trial[:0], kept, contested
-    sub = (lambda a: None if a is None else a[active])
     nfa = match_nfa_batch(P[active], Q[active], theta, t, cov, local, kept, n_hypotheses[active], sigma[active],
-                          sub(cov_p), sub(cov_q), [hulls[b][0] for b in active])
+                          _rows(cov_p, active), _rows(cov_q, active), [hulls[b][0] for b in active])
     accepted = (nfa <= MATCH_NFA)[local]
     return active[local][accepted], kept[accepted], contested[accepted]
 

@@ -276,18 +276,13 @@ def _mapped_inside(Q, theta, tx, ty, equations):
 @njit(cache=True)
 def bump_sums(x, s, radius, points, index, keys, ox, oy, h, nx, ny):
     """Σ_i exp(-|x_j - p_i|² / 2s²) over the grid's points within ``radius`` of each x_j."""
-    start, _, d2 = pairs_within(x, points, index, keys, ox, oy, h, nx, ny, radius)
-    out = np.zeros(x.shape[0])
-    for j in range(x.shape[0]):
-        for n in range(start[j], start[j + 1]):
-            out[j] += np.exp(-d2[n] / (2 * s * s))
-    return out
+    return _bumps_and_cover(x, s, radius, radius, points, index, keys, ox, oy, h, nx, ny)[0]
 
 
 @njit(cache=True)
 def _bumps_and_cover(x, s, radius, cover_radius, points, index, keys, ox, oy, h, nx, ny):
     """``bump_sums`` within ``radius`` and the count of the grid's points within ``cover_radius`` (>= radius)
-    of each x_j, from one neighbour search (the quadrature needs both at every node)."""
+    of each x_j, from one neighbour search (the null tail's quadrature needs both at every node)."""
     start, _, d2 = pairs_within(x, points, index, keys, ox, oy, h, nx, ny, cover_radius)
     out = np.zeros(x.shape[0])
     for j in range(x.shape[0]):

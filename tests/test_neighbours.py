@@ -49,8 +49,11 @@ def test_compiled_mixture_kernels_equal_their_python_source():
             exhaustive.EM_ROUNDS, *model.grid.arrays())
     np.testing.assert_allclose(em(*args), em.py_func(*args), rtol=1e-12)
     x = sc.q[:20]
-    np.testing.assert_allclose(exhaustive.bump_sums(x, s, 5 * s, *model.grid.arrays()),
-                               exhaustive.bump_sums.py_func(x, s, 5 * s, *model.grid.arrays()), rtol=1e-12)
+    # bump_sums is _bumps_and_cover at one radius, so the loop to check is _bumps_and_cover's.
+    grid = model.grid.arrays()
+    python = exhaustive._bumps_and_cover.py_func(x, s, 5 * s, 5 * s, *grid)[0]
+    np.testing.assert_allclose(exhaustive.bump_sums(x, s, 5 * s, *grid), python, rtol=1e-12)
+    np.testing.assert_allclose(exhaustive._bumps_and_cover(x, s, 5 * s, 5 * s, *grid)[0], python, rtol=1e-12)
 
 
 def test_quadrature_bumps_and_cover_are_the_two_searches_in_one():
