@@ -16,7 +16,8 @@ from harness_utils import cli
 
 def test_multirun_end_to_end_through_aggregation_and_figures(tmp_path):
     results = tmp_path / "results"
-    fig3 = cli(["-m", "experiment=fig3", "mc.n_trials=12", "mc.chunk_size=6",
+    # One job after another in this process: the joblib launcher has its own test (test_run.py).
+    fig3 = cli(["-m", "experiment=fig3", "hydra/launcher=basic", "mc.n_trials=12", "mc.chunk_size=6",
                 "scenario.snr_db=15,40", f"aggregate_dir={results / 'fig3'}",
                 "mc.progress=false"], tmp_path, timeout=300)
     assert fig3.returncode == 0, fig3.stderr[-2000:]

@@ -137,13 +137,29 @@ def test_validate_returns_the_typed_config_and_its_range_checks_run_in_the_datac
         (["scenario=lidar"], ["scenario/lidar", "paper", "small"]),
     ],
 )
-def test_invalid_overrides_fail_fast_and_write_nothing(tmp_path, args, message):
+def test_invalid_overrides_fail_fast_and_write_nothing(tmp_path, args, message, monkeypatch, capsys):
+    # The command's own entry point in this process (a fresh interpreter per case costs seconds each); the
+    # two cases after this test run it as the real command.
+    from experiments.run import cli as command
+
     if "experiment=smoke" in args and "mc.n_jobs=2" in args:
         args = [*args, "hydra/launcher=joblib"]
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "argv", ["run", *args])
+    with pytest.raises(SystemExit) as exit_:
+        command()
+    assert exit_.value.code == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error:") and all(m in lines[0] for m in message), lines
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("args", [["scenario.overlap=1.5"], ["-m", "scenario.snr_db=10,nope"]])
+def test_the_command_refuses_an_invalid_run_or_sweep_in_one_line_and_writes_nothing(tmp_path, args):
     proc = cli(args, tmp_path)
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("error:") and all(m in lines[0] for m in message), proc.stderr
+    assert len(lines) == 1 and lines[0].startswith("error: "), proc.stderr
     assert list(tmp_path.iterdir()) == []
 
 
