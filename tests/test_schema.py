@@ -154,12 +154,18 @@ def test_invalid_overrides_fail_fast_and_write_nothing(tmp_path, args, message, 
     assert list(tmp_path.iterdir()) == []
 
 
-@pytest.mark.parametrize("args", [["scenario.overlap=1.5"], ["-m", "scenario.snr_db=10,nope"]])
-def test_the_command_refuses_an_invalid_run_or_sweep_in_one_line_and_writes_nothing(tmp_path, args):
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["scenario.overlap=1.5"], ["scenario.overlap=1.5 is invalid: must be in (0, 1]"]),
+        (["-m", "scenario.snr_db=10,nope"], ["scenario.snr_db=nope", "could not be converted to Float"]),
+    ],
+)
+def test_the_command_refuses_an_invalid_run_or_sweep_in_one_line_and_writes_nothing(tmp_path, args, message):
     proc = cli(args, tmp_path)
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("error: "), proc.stderr
+    assert len(lines) == 1 and lines[0].startswith("error:") and all(m in lines[0] for m in message), proc.stderr
     assert list(tmp_path.iterdir()) == []
 
 
