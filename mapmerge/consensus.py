@@ -47,6 +47,7 @@ from .association import SHARED_PRIOR, associate_batch, declared_triangles, mapp
 from .exhaustive import Mixture, bump_height, inside_hull, pair_noise
 from .correspondence import correspondences, resolve_correspondences
 from .matching import TriangleMatch
+from .neighbours import njit
 from .result import MergeBatch, build_from_parts
 
 #: Tail probability of every χ² gate (a true pair / landmark is rejected
@@ -78,15 +79,55 @@ REFINE = 32
 ASSOCIATION_ROUNDS = 1
 
 
+@njit(cache=True)
+def _misfit2(p, q, c, s, tx, ty):
+    """‖q - (R(θ) p + t)‖² of one vertex pair (rows p, q), R(θ) given by c = cos θ, s = sin θ."""
+    ex = q[0] - (c * p[0] - s * p[1] + tx)
+    ey = q[1] - (s * p[0] + c * p[1] + ty)
+    return ex * ex + ey * ey
+
+
+@njit(cache=True)
+def _gate_d2_kernel(cp, cq, theta, t, var):
+    """``_gate_d2`` for H transforms: (H, m) misfits of m triangle pairs, var (H, m, 3)."""
+    d2 = np.empty((len(theta), cp.shape[0]))
+    for h in range(len(theta)):
+        c, s = np.cos(theta[h]), np.sin(theta[h])
+        for k in range(cp.shape[0]):
+            acc = 0.0
+            for v in range(3):
+                acc += _misfit2(cp[k, v], cq[k, v], c, s, t[h, 0], t[h, 1]) / var[h, k, v]
+            d2[h, k] = acc
+    return d2
+
+
 def _gate_d2(cp, cq, theta, t, var):
-    """χ²₆-distributed misfit of paired triangles under one or many transforms."""
-    # Written out per coordinate: an einsum over (transforms, pairs, vertices) costs five times more.
-    c, s = np.expand_dims(np.cos(theta), (-1, -2)), np.expand_dims(np.sin(theta), (-1, -2))
-    t = np.asarray(t)
-    px, py = cp[..., 0], cp[..., 1]
-    ex = cq[..., 0] - (c * px - s * py + t[..., None, None, 0])
-    ey = cq[..., 1] - (s * px + c * py + t[..., None, None, 1])
-    return np.sum((ex**2 + ey**2) / var, axis=-1)
+    """χ²₆-distributed misfit of m paired triangles (cp, cq: (m, 3, 2)) under one transform (θ scalar,
+    t (2,), var (m, 3)) or under H (θ (H,), t (H, 2), var (H, m, 3)): (m,) or (H, m)."""
+    theta = np.asarray(theta, dtype=float)
+    d2 = _gate_d2_kernel(cp, cq, theta.reshape(-1), np.reshape(t, (-1, 2)), np.reshape(var, (-1,) + cp.shape[:2]))
+    return d2.reshape(theta.shape + cp.shape[:1])
+
+
+@njit(cache=True)
+def _hypothesis_inliers(cp, cq, theta, t, centre, spread, two_var, gate):
+    """Which of m candidate pairs (cp, cq: (m, 3, 2)) each 3-point hypothesis (θ, t, its p triangle's
+    centroid and Σ‖p̃‖²) gates in: (H, m) bool.
+
+    Per coordinate the variance is both maps' noise, t's at the centroid (2σ²/3) and the rotation error
+    2σ²/Σ‖p̃‖² times the squared lever arm; ``two_var`` is 2σ².
+    """
+    inliers = np.empty((len(theta), cp.shape[0]), dtype=np.bool_)
+    for h in range(len(theta)):
+        c, s = np.cos(theta[h]), np.sin(theta[h])
+        for k in range(cp.shape[0]):
+            acc = 0.0
+            for v in range(3):
+                dx, dy = cp[k, v, 0] - centre[h, 0], cp[k, v, 1] - centre[h, 1]
+                var = two_var * (1 + 1 / 3 + (dx * dx + dy * dy) / spread[h])
+                acc += _misfit2(cp[k, v], cq[k, v], c, s, t[h, 0], t[h, 1]) / var
+            inliers[h, k] = acc <= gate
+    return inliers
 
 
 @dataclass(frozen=True)
@@ -123,11 +164,7 @@ def _consensus(vp, vq, P, Q, scores, sigma):
     centre = cp[hyp].mean(axis=1)
     spread = np.sum((cp[hyp] - centre[:, None]) ** 2, axis=(1, 2))  # Σ‖p̃‖²
     pooled = cp[pool]
-    lever2 = np.sum((pooled[None] - centre[:, None, None, :]) ** 2, axis=-1)  # (H, pool, 3)
-    # Per coordinate: both maps' noise, t at the centroid (2σ²/3) and the
-    # rotation error 2σ²/Σ‖p̃‖² times the squared lever arm.
-    var = 2 * sigma**2 * (1 + 1 / 3 + lever2 / spread[:, None, None])
-    inliers = _gate_d2(pooled, cq[pool], theta, t, var) <= gate
+    inliers = _hypothesis_inliers(pooled, cq[pool], theta, t, centre, spread, 2 * sigma**2, gate)
     count = inliers.sum(axis=1)
     # Sorted by count: the hypotheses from the first one short of MIN_CONSENSUS on have fewer.
     order = np.lexsort((-scores[hyp], -count))[:REFINE]
