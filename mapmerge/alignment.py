@@ -25,6 +25,7 @@ import numpy as np
 from scipy.special import chdtri
 
 from ._validation import check_points, check_sigma
+from .neighbours import njit
 
 #: J = [[0, -1], [1, 0]]: dR/dθ = R J.
 ROT90 = np.array([[0.0, -1.0], [1.0, 0.0]])
@@ -88,23 +89,53 @@ def fit_transforms(trial: np.ndarray, P: np.ndarray, Q: np.ndarray, n_trials: in
     cost : (n_trials,) ndarray
         J*, computed as a residual (no cancellation).
     """
-    K = np.bincount(trial, minlength=n_trials)
-    # Both coordinates' sums in one bincount (bin 2k + d): each bin still adds its pairs in order.
-    bins = (2 * trial[:, None] + np.arange(2)).ravel()
-    with np.errstate(invalid="ignore", divide="ignore"):
-        p_bar = np.bincount(bins, P.ravel(), 2 * n_trials).reshape(n_trials, 2) / K[:, None]
-        q_bar = np.bincount(bins, Q.ravel(), 2 * n_trials).reshape(n_trials, 2) / K[:, None]
-    px, py = (P - p_bar[trial]).T
-    qx, qy = (Q - q_bar[trial]).T
-    alpha = -np.bincount(trial, qx * px + qy * py, n_trials)
-    beta = -np.bincount(trial, px * qy - py * qx, n_trials)
-    theta = np.where(K > 0, wrap_angle(np.arctan2(-beta, -alpha)), np.nan)
-    t = q_bar - rotate(theta, p_bar[:, None, :])[:, 0]
-    c, s = np.cos(theta)[trial], np.sin(theta)[trial]
-    rx, ry = c * px - s * py - qx, s * px + c * py - qy
-    # Optimal µ is the midpoint, so each pair leaves half its squared gap.
-    cost = 0.5 * np.bincount(trial, rx**2 + ry**2, n_trials)
+    trial = np.ascontiguousarray(trial, dtype=np.int64)
+    P, Q = np.ascontiguousarray(P, dtype=float), np.ascontiguousarray(Q, dtype=float)
+    # The sums are compiled; the trigonometry stays numpy's, whose atan2 numba's differs from in the last bit.
+    count, bar, dot, cross = _centred_sums(trial, P, Q, int(n_trials))
+    theta = np.where(count > 0, wrap_angle(np.arctan2(cross, dot)), np.nan)
+    t, cost = _fit_residuals(trial, P, Q, bar, np.cos(theta), np.sin(theta))
     return theta, t, cost
+
+
+@njit(cache=True, error_model="numpy")
+def _centred_sums(trial, P, Q, n_trials):
+    """Each set's count, centroids (p̄_x, p̄_y, q̄_x, q̄_y; NaN for an empty set) and Σ q̃·p̃, Σ p̃ x q̃ (-α, -β),
+    each summed over the set's pairs in order (the bits of per-set bincounts)."""
+    count = np.zeros(n_trials, dtype=np.int64)
+    bar = np.zeros((n_trials, 4))
+    for k in range(len(trial)):
+        b = trial[k]
+        count[b] += 1
+        bar[b, 0] += P[k, 0]
+        bar[b, 1] += P[k, 1]
+        bar[b, 2] += Q[k, 0]
+        bar[b, 3] += Q[k, 1]
+    for b in range(n_trials):
+        bar[b] /= np.float64(count[b])
+    dot, cross = np.zeros(n_trials), np.zeros(n_trials)
+    for k in range(len(trial)):
+        b = trial[k]
+        px, py, qx, qy = P[k, 0] - bar[b, 0], P[k, 1] - bar[b, 1], Q[k, 0] - bar[b, 2], Q[k, 1] - bar[b, 3]
+        dot[b] += qx * px + qy * py
+        cross[b] += px * qy - py * qx
+    return count, bar, dot, cross
+
+
+@njit(cache=True)
+def _fit_residuals(trial, P, Q, bar, cos, sin):
+    """t* = q̄ - R(θ*) p̄ of each set and J*, half its pairs' squared gaps under (θ*, t*) (the optimal µ is
+    the midpoint), from ``_centred_sums``' centroids and cos θ*, sin θ*."""
+    t, cost = np.empty((len(cos), 2)), np.zeros(len(cos))
+    for b in range(len(cos)):
+        t[b, 0] = bar[b, 2] - (cos[b] * bar[b, 0] - sin[b] * bar[b, 1])
+        t[b, 1] = bar[b, 3] - (sin[b] * bar[b, 0] + cos[b] * bar[b, 1])
+    for k in range(len(trial)):
+        b = trial[k]
+        px, py, qx, qy = P[k, 0] - bar[b, 0], P[k, 1] - bar[b, 1], Q[k, 0] - bar[b, 2], Q[k, 1] - bar[b, 3]
+        rx, ry = cos[b] * px - sin[b] * py - qx, sin[b] * px + cos[b] * py - qy
+        cost[b] += rx * rx + ry * ry
+    return t, 0.5 * cost
 
 
 def fit_matched(P: np.ndarray, Q: np.ndarray, pair_trial: np.ndarray, pairs: np.ndarray, min_pairs: int):

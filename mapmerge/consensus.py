@@ -88,15 +88,15 @@ def _misfit2(p, q, c, s, tx, ty):
 
 
 @njit(cache=True)
-def _gate_d2_kernel(cp, cq, theta, t, var):
-    """``_gate_d2`` for H transforms: (H, m) misfits of m triangle pairs, var (H, m, 3)."""
-    d2 = np.empty((len(theta), cp.shape[0]))
-    for h in range(len(theta)):
-        c, s = np.cos(theta[h]), np.sin(theta[h])
+def _gate_d2_kernel(cp, cq, cos, sin, t, var):
+    """``_gate_d2`` for H transforms (cos θ, sin θ: (H,), from numpy, whose trigonometry sets the bits):
+    (H, m) misfits of m triangle pairs, var (H, m, 3)."""
+    d2 = np.empty((len(cos), cp.shape[0]))
+    for h in range(len(cos)):
         for k in range(cp.shape[0]):
             acc = 0.0
             for v in range(3):
-                acc += _misfit2(cp[k, v], cq[k, v], c, s, t[h, 0], t[h, 1]) / var[h, k, v]
+                acc += _misfit2(cp[k, v], cq[k, v], cos[h], sin[h], t[h, 0], t[h, 1]) / var[h, k, v]
             d2[h, k] = acc
     return d2
 
@@ -105,27 +105,27 @@ def _gate_d2(cp, cq, theta, t, var):
     """χ²₆-distributed misfit of m paired triangles (cp, cq: (m, 3, 2)) under one transform (θ scalar,
     t (2,), var (m, 3)) or under H (θ (H,), t (H, 2), var (H, m, 3)): (m,) or (H, m)."""
     theta = np.asarray(theta, dtype=float)
-    d2 = _gate_d2_kernel(cp, cq, theta.reshape(-1), np.reshape(t, (-1, 2)), np.reshape(var, (-1,) + cp.shape[:2]))
+    d2 = _gate_d2_kernel(cp, cq, np.cos(theta.reshape(-1)), np.sin(theta.reshape(-1)), np.reshape(t, (-1, 2)),
+                         np.reshape(var, (-1,) + cp.shape[:2]))
     return d2.reshape(theta.shape + cp.shape[:1])
 
 
 @njit(cache=True)
-def _hypothesis_inliers(cp, cq, theta, t, centre, spread, two_var, gate):
-    """Which of m candidate pairs (cp, cq: (m, 3, 2)) each 3-point hypothesis (θ, t, its p triangle's
-    centroid and Σ‖p̃‖²) gates in: (H, m) bool.
+def _hypothesis_inliers(cp, cq, cos, sin, t, centre, spread, two_var, gate):
+    """Which of m candidate pairs (cp, cq: (m, 3, 2)) each 3-point hypothesis (cos θ, sin θ, t, its p
+    triangle's centroid and Σ‖p̃‖²) gates in: (H, m) bool.
 
     Per coordinate the variance is both maps' noise, t's at the centroid (2σ²/3) and the rotation error
     2σ²/Σ‖p̃‖² times the squared lever arm; ``two_var`` is 2σ².
     """
-    inliers = np.empty((len(theta), cp.shape[0]), dtype=np.bool_)
-    for h in range(len(theta)):
-        c, s = np.cos(theta[h]), np.sin(theta[h])
+    inliers = np.empty((len(cos), cp.shape[0]), dtype=np.bool_)
+    for h in range(len(cos)):
         for k in range(cp.shape[0]):
             acc = 0.0
             for v in range(3):
                 dx, dy = cp[k, v, 0] - centre[h, 0], cp[k, v, 1] - centre[h, 1]
                 var = two_var * (1 + 1 / 3 + (dx * dx + dy * dy) / spread[h])
-                acc += _misfit2(cp[k, v], cq[k, v], c, s, t[h, 0], t[h, 1]) / var
+                acc += _misfit2(cp[k, v], cq[k, v], cos[h], sin[h], t[h, 0], t[h, 1]) / var
             inliers[h, k] = acc <= gate
     return inliers
 
@@ -164,7 +164,8 @@ def _consensus(vp, vq, P, Q, scores, sigma):
     centre = cp[hyp].mean(axis=1)
     spread = np.sum((cp[hyp] - centre[:, None]) ** 2, axis=(1, 2))  # Σ‖p̃‖²
     pooled = cp[pool]
-    inliers = _hypothesis_inliers(pooled, cq[pool], theta, t, centre, spread, 2 * sigma**2, gate)
+    inliers = _hypothesis_inliers(pooled, cq[pool], np.cos(theta), np.sin(theta), t, centre, spread, 2 * sigma**2,
+                                  gate)
     count = inliers.sum(axis=1)
     # Sorted by count: the hypotheses from the first one short of MIN_CONSENSUS on have fewer.
     order = np.lexsort((-scores[hyp], -count))[:REFINE]
