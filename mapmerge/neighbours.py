@@ -6,8 +6,9 @@ quadrature (``mapmerge.exhaustive``) and the global search's refinement
 lie within a radius of some points. ``CellGrid`` sorts the landmarks by
 the cell of a grid at least that radius wide, so that every neighbour of a
 point lies in the 3 x 3 cells around it; the cells are found by binary
-search in the sorted keys, so memory is O(n) whatever the maps' extent, and
-the same structure serves 10 landmarks and 10⁶.
+search in the sorted keys (three cells of one column are one range of
+them), so memory is O(n) whatever the maps' extent, and the same structure
+serves 10 landmarks and 10⁶.
 
 The kernels are compiled by numba (the ``fast`` extra, ``cache=True``: the
 machine code is kept beside the sources after the first call). Without
@@ -80,15 +81,21 @@ def cell_grid(P: np.ndarray, radius: float) -> CellGrid:
 
 
 @njit(cache=True)
-def cell_span(x, y, keys, ox, oy, h, nx, ny, ix_off, iy_off):
-    """The range of sorted points in the cell offset by (ix_off, iy_off) from the one holding (x, y);
-    an empty range when that cell is off the grid (or x, y is not finite)."""
+def column_span(x, y, keys, ox, oy, h, nx, ny, ix_off):
+    """The range of sorted points in the three cells (ix + ix_off, iy - 1 .. iy + 1) around the cell
+    (ix, iy) holding (x, y), the part of them on the grid; an empty range when none is (or x, y is not
+    finite).
+
+    Keys run ``ix * ny + iy``, so the three cells are consecutive in the sorted points, in the order of
+    iy: one range, two binary searches instead of six.
+    """
     fx = np.floor((x - ox) / h) + ix_off
-    fy = np.floor((y - oy) / h) + iy_off
-    if not (fx >= 0 and fx < nx and fy >= 0 and fy < ny):
+    fy = np.floor((y - oy) / h)
+    lo_y, hi_y = max(fy - 1, 0.0), min(fy + 1, ny - 1.0)
+    if not (fx >= 0 and fx < nx and lo_y <= hi_y):
         return 0, 0
-    key = np.int64(fx) * ny + np.int64(fy)
-    return np.searchsorted(keys, key), np.searchsorted(keys, key, side="right")
+    row = np.int64(fx) * ny
+    return np.searchsorted(keys, row + np.int64(lo_y)), np.searchsorted(keys, row + np.int64(hi_y), side="right")
 
 
 @njit(cache=True)
@@ -106,25 +113,28 @@ def pairs_within(x, points, index, keys, ox, oy, h, nx, ny, radius):
     """
     r2 = radius * radius
     start = np.zeros(x.shape[0] + 1, dtype=np.int64)
-    k, d2 = np.empty(0, dtype=np.int64), np.empty(0)
-    # Counted first, then filled: two passes over the cells, no growing buffers.
-    for fill in range(2):
-        if fill:
-            k, d2 = np.empty(start[-1], dtype=np.int64), np.empty(start[-1])
-        for j in range(x.shape[0]):
-            n = start[j]
-            for a in range(-1, 2):
-                for b in range(-1, 2):
-                    lo, hi = cell_span(x[j, 0], x[j, 1], keys, ox, oy, h, nx, ny, a, b)
-                    for c in range(lo, hi):
-                        dx, dy = x[j, 0] - points[c, 0], x[j, 1] - points[c, 1]
-                        e = dx * dx + dy * dy
-                        if e <= r2:
-                            if fill:
-                                k[n], d2[n] = c, e
-                            n += 1
-            if not fill:
-                start[j + 1] = n
+    # Counted first, then filled: no growing buffers; the first pass keeps the columns' ranges.
+    span = np.empty((x.shape[0], 3, 2), dtype=np.int64)
+    for j in range(x.shape[0]):
+        n = start[j]
+        for a in range(3):
+            lo, hi = column_span(x[j, 0], x[j, 1], keys, ox, oy, h, nx, ny, a - 1)
+            span[j, a, 0], span[j, a, 1] = lo, hi
+            for c in range(lo, hi):
+                dx, dy = x[j, 0] - points[c, 0], x[j, 1] - points[c, 1]
+                if dx * dx + dy * dy <= r2:
+                    n += 1
+        start[j + 1] = n
+    k, d2 = np.empty(start[-1], dtype=np.int64), np.empty(start[-1])
+    for j in range(x.shape[0]):
+        n = start[j]
+        for a in range(3):
+            for c in range(span[j, a, 0], span[j, a, 1]):
+                dx, dy = x[j, 0] - points[c, 0], x[j, 1] - points[c, 1]
+                e = dx * dx + dy * dy
+                if e <= r2:
+                    k[n], d2[n] = c, e
+                    n += 1
     return start, k, d2
 
 
