@@ -311,7 +311,12 @@ def _em_rounds(Q, theta, tx, ty, equations, s, c, radius, rounds, points, index,
             break
         w = c * np.exp(-d2 / (2 * s * s))
         for u in range(x.shape[0]):
-            w[start[u]:start[u + 1]] /= 1 + np.sum(w[start[u]:start[u + 1]])
+            # Summed and divided in place: a slice's ``/=`` allocates, once per landmark.
+            total = 0.0
+            for n in range(start[u], start[u + 1]):
+                total += w[n]
+            for n in range(start[u], start[u + 1]):
+                w[n] /= 1 + total
         # The weighted means, then the centred cross and dot sums.
         total, ma0, ma1, mb0, mb1 = 0.0, 0.0, 0.0, 0.0, 0.0
         for u in range(x.shape[0]):
