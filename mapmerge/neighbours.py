@@ -13,14 +13,24 @@ serves 10 landmarks and 10⁶.
 The kernels are compiled by numba (the ``fast`` extra, ``cache=True``: the
 machine code is kept beside the sources after the first call). Without
 numba the very same functions run as Python: the same results, slowly.
+numba checks a cached kernel against its own file only, so one that calls
+a kernel of another module would go on running the old callee after that
+module changed; ``clear_stale_kernels`` therefore drops the package's
+cached kernels whenever any of its sources changed.
 """
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
+try:
+    import fcntl
+except ImportError:  # pragma: no cover - Windows: no lock, the check still runs
+    fcntl = None
 try:
     from numba import njit
 except ImportError:  # pragma: no cover - exercised where numba is absent
@@ -29,6 +39,37 @@ except ImportError:  # pragma: no cover - exercised where numba is absent
         if len(args) == 1 and callable(args[0]) and not kwargs:
             return args[0]
         return lambda function: function
+
+
+def clear_stale_kernels(package: Path = Path(__file__).parent) -> bool:
+    """Delete the numba caches (``__pycache__/*.nbi``, ``*.nbc``) under ``package`` unless its ``.py`` sources are
+    the ones they were compiled from (a digest kept in ``__pycache__/kernels.sha256``); True when deleted.
+
+    Run at import, before any kernel is compiled (numba compiles at the first call), under a lock, so that
+    processes starting together (workers, test processes) check and delete once. A read-only install keeps
+    its caches as they are.
+    """
+    digest = hashlib.sha256()
+    for source in sorted(package.rglob("*.py")):
+        digest.update(source.relative_to(package).as_posix().encode() + b"\0" + source.read_bytes())
+    cache = package / "__pycache__"
+    try:
+        cache.mkdir(exist_ok=True)
+        with open(cache / "kernels.lock", "w") as lock:
+            if fcntl is not None:
+                fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+            stamp = cache / "kernels.sha256"
+            if stamp.is_file() and stamp.read_text() == digest.hexdigest():
+                return False
+            for cached in (*package.rglob("*.nbi"), *package.rglob("*.nbc")):
+                cached.unlink(missing_ok=True)
+            stamp.write_text(digest.hexdigest())
+    except OSError:
+        return False
+    return True
+
+
+clear_stale_kernels()
 
 #: Largest number of grid cells per axis. Cells are widened beyond it, so points spread over any extent
 #: (maps in other units) still give keys that fit an int64; wider cells only cost more comparisons.

@@ -66,3 +66,25 @@ def test_quadrature_bumps_and_cover_are_the_two_searches_in_one():
     np.testing.assert_array_equal(bumps, exhaustive.bump_sums(x, s, 0.5 * radius, *model.grid.arrays()))
     np.testing.assert_array_equal(cover, neighbours.count_within(x, model.grid, radius))
     assert cover.sum() > np.count_nonzero(bumps)  # the two radii differ, so the test can tell them apart
+
+
+def test_cached_kernels_are_dropped_when_any_source_changes(tmp_path):
+    (tmp_path / "a.py").write_text("x = 1\n")
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "sub" / "b.py").write_text("y = 2\n")
+    kernels = [tmp_path / "__pycache__" / "a.f-1.py311.nbi", tmp_path / "sub" / "__pycache__" / "b.g-1.py311.1.nbc"]
+
+    def compile_kernels():
+        for path in kernels:
+            path.parent.mkdir(exist_ok=True)
+            path.write_bytes(b"machine code")
+
+    compile_kernels()
+    assert neighbours.clear_stale_kernels(tmp_path)  # no digest yet: nothing is trusted
+    assert not any(path.exists() for path in kernels)
+    compile_kernels()
+    assert not neighbours.clear_stale_kernels(tmp_path)  # same sources: kept
+    assert all(path.exists() for path in kernels)
+    (tmp_path / "sub" / "b.py").write_text("y = 3\n")  # a callee's module changed
+    assert neighbours.clear_stale_kernels(tmp_path)
+    assert not any(path.exists() for path in kernels)
