@@ -59,7 +59,7 @@ import hashlib
 import numpy as np
 from scipy.spatial import ConvexHull, cKDTree
 
-from .alignment import Alignment, fit_transforms, rotate
+from .alignment import Alignment, fit_transforms
 from .association import associate, declared_triangles
 from .exhaustive import Mixture, bump_height, pair_noise
 from .neighbours import cell_grid, nearest_within, njit
@@ -202,19 +202,7 @@ def _refine(P, Q, thetas, ts, r, cell, sigma):
     live, theta, t = np.arange(len(thetas)), np.asarray(thetas, float), np.asarray(ts, float).reshape(-1, 2)
     for k in range(REFINE_ROUNDS):
         bound = max(2 * r, 2 * cell / 2**k)
-        x = rotate(-theta, Q[None] - t[:, None, :]).reshape(-1, 2)
-        i, dist = nearest_within(x, *grid.arrays(), bound)
-        h, j = np.divmod(np.flatnonzero(i >= 0), len(Q))
-        i, dist = i[i >= 0], dist[i >= 0]
-        # One-to-one, per hypothesis: each p landmark keeps its nearest q landmark.
-        key = h * len(P) + i
-        order = np.lexsort((dist, key))
-        first = order[np.r_[True, key[order][1:] != key[order][:-1]]] if h.size else order
-        h, j, i = h[first], j[first], i[first]
-        fitted = np.bincount(h, minlength=len(live)) >= 3
-        keep = fitted[h]
-        # Renumber the hypotheses still refining: 0 .. (number fitted) - 1.
-        h, j, i = np.cumsum(fitted)[h[keep]] - 1, j[keep], i[keep]
+        fitted, h, i, j = _nearest_pairs(Q, np.cos(-theta), np.sin(-theta), t, *grid.arrays(), bound, len(P))
         live = live[fitted]
         if not live.size:
             return [None] * len(thetas)
@@ -224,6 +212,46 @@ def _refine(P, Q, thetas, ts, r, cell, sigma):
         sel = h == k
         out[hyp] = Alignment.from_fit(float(theta[k]), t[k], cost[k], P[i[sel]], Q[j[sel]], sigma)
     return out
+
+
+@njit(cache=True)
+def _nearest_pairs(Q, cos, sin, t, points, index, keys, ox, oy, h, nx, ny, bound, n_p):
+    """One refine round's pairs: under each hypothesis (cos, sin of -θ, t), q landmark j mapped into p's frame,
+    ``R(-θ)(q_j - t)``, pairs with its nearest p landmark closer than ``bound``, and each p landmark keeps its
+    nearest q landmark (the first of ties).
+
+    Returns which hypotheses have at least 3 pairs and their pairs (hypothesis renumbered over those, p
+    index, q index), by hypothesis, then p index.
+    """
+    n_h, n_q = len(cos), Q.shape[0]
+    fitted = np.zeros(n_h, dtype=np.bool_)
+    size = n_h * min(n_p, n_q)
+    out_h, out_i, out_j = np.empty(size, dtype=np.int64), np.empty(size, dtype=np.int64), np.empty(size, dtype=np.int64)
+    x = np.empty((n_q, 2))
+    best_j, best_d = np.empty(n_p, dtype=np.int64), np.empty(n_p)
+    m, n_fitted = 0, 0
+    for a in range(n_h):
+        for q in range(n_q):
+            dx, dy = Q[q, 0] - t[a, 0], Q[q, 1] - t[a, 1]
+            x[q, 0], x[q, 1] = cos[a] * dx - sin[a] * dy, sin[a] * dx + cos[a] * dy
+        near, dist = nearest_within(x, points, index, keys, ox, oy, h, nx, ny, bound)
+        best_j[:] = -1
+        for q in range(n_q):
+            i = near[q]
+            if i >= 0 and (best_j[i] < 0 or dist[q] < best_d[i]):
+                best_j[i], best_d[i] = q, dist[q]
+        count = 0
+        for i in range(n_p):
+            count += best_j[i] >= 0
+        if count < 3:
+            continue
+        fitted[a] = True
+        for i in range(n_p):
+            if best_j[i] >= 0:
+                out_h[m], out_i[m], out_j[m] = n_fitted, i, best_j[i]
+                m += 1
+        n_fitted += 1
+    return fitted, out_h[:m], out_i[:m], out_j[:m]
 
 
 def _log_nfa(Q, hypotheses, model: Mixture, n_hypotheses: float):
