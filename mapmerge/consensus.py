@@ -49,6 +49,7 @@ from .correspondence import correspondences, resolve_correspondences
 from .matching import TriangleMatch
 from .neighbours import njit
 from .result import MergeBatch, build_from_parts
+from .triangles import centroids
 
 #: Tail probability of every χ² gate (a true pair / landmark is rejected
 #: with this probability).
@@ -161,7 +162,7 @@ def _consensus(vp, vq, P, Q, scores, sigma):
     pool = _hough_pool(cp, cq, scores, sigma) if large else np.argsort(-scores, kind="stable")
     hyp = pool[:MAX_HYPOTHESES]
     theta, t, _ = paired_transforms(cp[hyp], cq[hyp])
-    centre = cp[hyp].mean(axis=1)
+    centre = centroids(cp[hyp])
     spread = np.sum((cp[hyp] - centre[:, None]) ** 2, axis=(1, 2))  # Σ‖p̃‖²
     pooled = cp[pool]
     inliers = _hypothesis_inliers(pooled, cq[pool], np.cos(theta), np.sin(theta), t, centre, spread, 2 * sigma**2,
@@ -172,7 +173,7 @@ def _consensus(vp, vq, P, Q, scores, sigma):
     order = order[count[order] >= MIN_CONSENSUS]
     cand = _Pool(vp, vq, P, Q, scores, sigma, pool)
     if large:
-        centres = pooled.mean(axis=1)
+        centres = centroids(pooled)
         groups = (_grow(cand, centres, hyp[h], gate) for h in order)
     else:
         groups = _refit_groups(cand, inliers[order], gate)
@@ -254,7 +255,7 @@ def _hough_pool(cp, cq, scores, sigma):
     cell and its neighbours, best scores first.
     """
     theta, _, _ = paired_transforms(cp, cq)
-    p_bar, q_bar = cp.mean(axis=1), cq.mean(axis=1)
+    p_bar, q_bar = centroids(cp), centroids(cq)
     spread = np.median(np.sum((cp - p_bar[:, None]) ** 2, axis=(1, 2)))
     side = np.sqrt(spread / 2)  # about a typical side length
     sigma_theta = np.sqrt(2 * sigma**2 / spread)  # rotation error of a typical triangle fit

@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._validation import check_finite, check_sigma, float_array
-from .triangles import TriangleBatch, ccw_order
+from .triangles import TriangleBatch, ccw_order, centroids
 
 #: Triangle pairs scored per numpy call by ``pairwise_log_lr_blocks`` and ``min_cost``'s listed pairs: small enough
 #: that the temporaries stay in cache (64 maps of 20 landmarks; one big map).
@@ -136,8 +136,7 @@ def _min_over_shifts(zp, sp, zq, sq, cyclic: bool):
 
 def _centred(c, conjugate: bool = False):
     """Each triangle's vertices about their centroid as complex numbers (conjugated for p), and Σ ‖c̃_v‖²."""
-    # The centroid summed vertex by vertex, in order: the bits of ``mean(axis=-2)`` at a quarter of its cost.
-    centred = c - ((c[..., 0, :] + c[..., 1, :]) + c[..., 2, :])[..., None, :] / 3
+    centred = c - centroids(c)[..., None, :]
     z = np.empty(centred.shape[:-1], complex)
     z.real, z.imag = centred[..., 0], -centred[..., 1] if conjugate else centred[..., 1]
     return z, (centred**2).sum(axis=(-2, -1))

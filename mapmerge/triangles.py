@@ -158,6 +158,12 @@ def _length(d: np.ndarray) -> np.ndarray:
     return np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1])
 
 
+def centroids(coords: np.ndarray) -> np.ndarray:
+    """Centroid of each triangle (..., 3, 2): the vertices summed in order, then divided by 3, which are the
+    bits of ``coords.mean(axis=-2)`` at a fraction of its cost (a reduction over a middle axis is slow)."""
+    return ((coords[..., 0, :] + coords[..., 1, :]) + coords[..., 2, :]) / 3
+
+
 def ccw_order(coords: np.ndarray) -> np.ndarray:
     """Permutation (T, 3) putting each triangle's vertices counter-clockwise."""
     d1, d2 = coords[:, 1] - coords[:, 0], coords[:, 2] - coords[:, 0]
