@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .neighbours import njit
+
 
 def correspondences(vertices_p, vertices_q, log_lr):
     """One-to-one landmark correspondences implied by declared triangle pairs.
@@ -81,13 +83,11 @@ def resolve_correspondences(vertices_p, vertices_q, log_lr=None, min_votes=1):
     if contested.size == 0:
         return uniq, keep, all_votes
     cp, cq = uniq[contested, 0], uniq[contested, 1]
-    # Rank: votes down, then the best score down, then position ((p, q) order). By votes alone a key
-    # ordering as (votes down, position) serves without a sort; with scores, the score is compared
-    # among each landmark's leaders by votes (``_leaders``) rather than sorted: many candidates (Groth's
-    # hundreds per map pair) and few rounds.
+    # The sequential greedy in rank order: votes down, then the best score down, then position ((p, q)
+    # order: lexsort is stable).
     votes = all_votes[contested]
-    rank = (votes.max() - votes) * contested.size + np.arange(contested.size)
-    keep[contested] = _greedy(cp, cq, rank, votes, None if score is None else best[contested])
+    order = np.lexsort((-votes,) if score is None else (-best[contested], -votes))
+    keep[contested] = _keep_in_order(cp, cq, order)
     return uniq, keep, all_votes
 
 
@@ -117,44 +117,17 @@ def _grouped_keys(keys, score, n_keys: int):
     return present, all_votes, best
 
 
-def _greedy(cp, cq, rank, votes, best):
-    """Which contested candidates (p, q) = (cp, cq) the sequential greedy in rank order keeps.
-
-    Greedy in rank order, in rounds: a candidate ranked first among the
-    live ones sharing its p and its q is exactly one the sequential greedy
-    keeps; keeping it kills its rivals. Conflicts are rare, so few rounds.
-    """
-    won = np.zeros(cp.size, dtype=bool)
-    taken_p, taken_q = np.zeros(int(cp.max()) + 1, dtype=bool), np.zeros(int(cq.max()) + 1, dtype=bool)
-    live = np.arange(cp.size)  # shrinks each round: most candidates die in the first ones
-    while live.size:
-        lp, lq, lr = cp[live], cq[live], rank[live]
-        lb = None if best is None else best[live]
-        first = _leaders(lp, lr, votes[live], lb) & _leaders(lq, lr, votes[live], lb)
-        won[live[first]] = True
-        taken_p[lp[first]] = taken_q[lq[first]] = True
-        live = live[~taken_p[lp] & ~taken_q[lq]]
+@njit(cache=True)
+def _keep_in_order(cp, cq, order):
+    """The sequential greedy: in ``order``, each candidate whose p and q are both free is kept and takes them."""
+    won = np.zeros(cp.size, dtype=np.bool_)
+    taken_p, taken_q = np.zeros(cp.max() + 1, dtype=np.bool_), np.zeros(cq.max() + 1, dtype=np.bool_)
+    for k in order:
+        if not (taken_p[cp[k]] or taken_q[cq[k]]):
+            won[k] = taken_p[cp[k]] = taken_q[cq[k]] = True
     return won
 
 
-_NO_RANK = np.iinfo(np.int64).max
 #: ``resolve_correspondences`` counts candidates in a table when the range of
 #: their (p, q) keys is at most this many times their number, else sorts them.
 KEY_TABLE_FACTOR = 8
-
-
-def _leaders(landmark: np.ndarray, rank: np.ndarray, votes: np.ndarray, score: np.ndarray | None) -> np.ndarray:
-    """Whether each candidate comes first among the candidates of its landmark: by ``rank`` (votes down,
-    then position) or, with ``score``, the most votes, then the best score, then position."""
-    top = np.full(int(landmark.max()) + 1, _NO_RANK)
-    if score is None:
-        np.minimum.at(top, landmark, rank)
-        return rank == top[landmark]
-    most = np.zeros(len(top), dtype=votes.dtype)
-    np.maximum.at(most, landmark, votes)
-    lead = votes == most[landmark]
-    high = np.full(len(top), -np.inf)
-    np.maximum.at(high, landmark[lead], score[lead])
-    lead &= score == high[landmark]
-    np.minimum.at(top, landmark[lead], rank[lead])
-    return lead & (rank == top[landmark])
