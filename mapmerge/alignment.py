@@ -112,7 +112,8 @@ def _centred_sums(trial, P, Q, n_trials):
         bar[b, 2] += Q[k, 0]
         bar[b, 3] += Q[k, 1]
     for b in range(n_trials):
-        bar[b] /= np.float64(count[b])
+        for c in range(4):
+            bar[b, c] /= count[b]
     dot, cross = np.zeros(n_trials), np.zeros(n_trials)
     for k in range(len(trial)):
         b = trial[k]

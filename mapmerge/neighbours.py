@@ -74,8 +74,6 @@ clear_stale_kernels()
 #: Largest number of grid cells per axis. Cells are widened beyond it, so points spread over any extent
 #: (maps in other units) still give keys that fit an int64; wider cells only cost more comparisons.
 MAX_CELLS_PER_AXIS = 2**24
-#: ``pairs_within`` visits more rows than this in the order of their cells (speed only: the result is the same).
-SORTED_VISIT_ROWS = 4096
 
 
 @dataclass(frozen=True)
@@ -155,29 +153,24 @@ def pairs_within(x, points, index, keys, ox, oy, h, nx, ny, radius):
         Each pair's squared distance.
     """
     r2 = radius * radius
-    # Many rows are visited in the order of their cells, so that consecutive searches touch nearby keys and
-    # points (at 10⁶ landmarks, random order costs a cache miss a step); each row's pairs still go to its
-    # own place, in the same order, so the result does not depend on the visiting order.
-    visit = np.arange(x.shape[0])
-    if x.shape[0] > SORTED_VISIT_ROWS:
-        visit = np.argsort(np.floor((x[:, 0] - ox) / h) * ny + np.floor((x[:, 1] - oy) / h))
-    count = np.zeros(x.shape[0], dtype=np.int64)
-    span = np.empty((x.shape[0], 3, 2), dtype=np.int64)  # counted first, then filled: no growing buffers
-    for j in visit:
+    start = np.zeros(x.shape[0] + 1, dtype=np.int64)
+    # Counted first, then filled: no growing buffers; the first pass keeps the columns' ranges.
+    span = np.empty((x.shape[0], 6), dtype=np.int64)
+    for j in range(x.shape[0]):
+        n = start[j]
         for a in range(3):
             lo, hi = column_span(x[j, 0], x[j, 1], keys, ox, oy, h, nx, ny, a - 1)
-            span[j, a, 0], span[j, a, 1] = lo, hi
+            span[j, 2 * a], span[j, 2 * a + 1] = lo, hi
             for c in range(lo, hi):
                 dx, dy = x[j, 0] - points[c, 0], x[j, 1] - points[c, 1]
                 if dx * dx + dy * dy <= r2:
-                    count[j] += 1
-    start = np.zeros(x.shape[0] + 1, dtype=np.int64)
-    start[1:] = np.cumsum(count)
+                    n += 1
+        start[j + 1] = n
     k, d2 = np.empty(start[-1], dtype=np.int64), np.empty(start[-1])
-    for j in visit:
+    for j in range(x.shape[0]):
         n = start[j]
         for a in range(3):
-            for c in range(span[j, a, 0], span[j, a, 1]):
+            for c in range(span[j, 2 * a], span[j, 2 * a + 1]):
                 dx, dy = x[j, 0] - points[c, 0], x[j, 1] - points[c, 1]
                 e = dx * dx + dy * dy
                 if e <= r2:

@@ -89,14 +89,3 @@ def test_cached_kernels_are_dropped_when_any_source_changes(tmp_path):
     assert neighbours.clear_stale_kernels(tmp_path)
     assert not any(path.exists() for path in kernels)
 
-
-def test_pairs_within_gives_the_same_pairs_whatever_order_it_visits_the_rows(rng):
-    P = rng.uniform(0, 100, (3000, 2))
-    x = np.concatenate([rng.uniform(-5, 105, (2 * neighbours.SORTED_VISIT_ROWS, 2)), [[np.nan, 1.0]]])
-    grid = neighbours.cell_grid(P, 2.0)
-    start, k, d2 = neighbours.pairs_within(x, *grid.arrays(), 2.0)  # visited in cell order
-    step = neighbours.SORTED_VISIT_ROWS
-    parts = [neighbours.pairs_within(x[a:a + step], *grid.arrays(), 2.0) for a in range(0, len(x), step)]
-    np.testing.assert_array_equal(np.diff(start), np.concatenate([np.diff(s) for s, _, _ in parts]))
-    np.testing.assert_array_equal(k, np.concatenate([kk for _, kk, _ in parts]))
-    np.testing.assert_array_equal(d2, np.concatenate([dd for _, _, dd in parts]))
