@@ -169,6 +169,12 @@ def _assign(i, j, score, n_p: int, n_q: int, with_margin: bool):
     p_of, q_of, margins = [i[single]], [j[single]], [np.full(int(single.sum()), np.inf)]
     i, j, score = i[~single], j[~single], score[~single]
     comp = candidate_components(i, j, n_p, n_q) if i.size else i
+    handled, pairs_2x2, margins_2x2 = _two_by_two(i, j, score, comp, with_margin)
+    p_of.append(pairs_2x2[:, 0])
+    q_of.append(pairs_2x2[:, 1])
+    margins.append(margins_2x2)
+    rest = ~handled[comp] if comp.size else comp.astype(bool)
+    i, j, score, comp = i[rest], j[rest], score[rest], comp[rest]
     for rows, cols, gain in component_blocks(i, j, score, comp, 0.0):
         r, c = linear_sum_assignment(gain, maximize=True)
         value = gain[r, c]
@@ -180,6 +186,69 @@ def _assign(i, j, score, n_p: int, n_q: int, with_margin: bool):
     pairs = np.stack([np.concatenate(p_of), np.concatenate(q_of)], axis=1).astype(np.intp)
     order = np.argsort(pairs[:, 0], kind="stable")
     return pairs[order], (np.concatenate(margins)[order] if with_margin else None)
+
+
+def _two_by_two(i, j, score, comp, with_margin: bool):
+    """``_assign`` of every component of at most 2 rows and 2 columns at once (most contests: two landmarks
+    near one, or two near two), as ``linear_sum_assignment`` and ``_margins`` solve it: of the two
+    assignments of a 2 x 2 block (a missing row or column is zeros) the larger total, its positive entries
+    kept, and each kept pair's margin from the same choice with that pair zeroed. A component where two
+    totals tie is left to the solver, whose choice then decides.
+
+    Returns which components were handled, their pairs and (with ``with_margin``) margins.
+    """
+    empty = np.zeros(0, dtype=bool), np.empty((0, 2), dtype=np.intp), np.empty(0)
+    if not comp.size:
+        return empty
+    n_comp = int(comp.max()) + 1
+    ends = []
+    for x in (i, j):
+        lo, hi = np.full(n_comp, np.iinfo(np.intp).max), np.full(n_comp, -1)
+        np.minimum.at(lo, comp, x)
+        np.maximum.at(hi, comp, x)
+        ends.append((lo, hi, x != lo[comp]))  # the component's two landmarks and which one x is
+    (lo_i, hi_i, r), (lo_j, hi_j, c) = ends
+    small = np.bincount(comp, (i != lo_i[comp]) & (i != hi_i[comp]) | (j != lo_j[comp]) & (j != hi_j[comp]),
+                        n_comp) == 0
+    small &= np.bincount(comp, minlength=n_comp) > 0
+    local = np.cumsum(small) - 1
+    use = small[comp]
+    g = np.zeros((int(small.sum()), 2, 2))
+    g[local[comp[use]], r[use].astype(np.intp), c[use].astype(np.intp)] = score[use]
+    rows, cols = np.stack([lo_i, hi_i], 1)[small], np.stack([lo_j, hi_j], 1)[small]
+
+    def choose(block):
+        """Each block's better assignment: whether it is the diagonal, the entries of rows 0 and 1, a tie."""
+        diagonal, anti = block[:, 0, 0] + block[:, 1, 1], block[:, 0, 1] + block[:, 1, 0]
+        diag = diagonal > anti
+        return diag, np.where(diag, block[:, 0, 0], block[:, 0, 1]), np.where(diag, block[:, 1, 1], block[:, 1, 0]), \
+            diagonal == anti
+
+    diag, v0, v1, tie = choose(g)
+    best = v0 + v1  # the assignment's total, as ``value.sum()`` adds it
+    col_of = np.stack([np.where(diag, 0, 1), np.where(diag, 1, 0)], 1)  # column of row 0 and of row 1
+    kept = np.stack([v0 > 0, v1 > 0], 1)
+    margin = np.full(kept.shape, np.inf)
+    if with_margin:
+        for a in range(2):
+            alt = g.copy()
+            f = np.arange(len(g))
+            alt[f, a, col_of[:, a]] = 0.0
+            diag2, u0, u1, tie2 = choose(alt)
+            tie |= tie2 & kept[:, a]
+            col2 = np.stack([np.where(diag2, 0, 1), np.where(diag2, 1, 0)], 1)
+            used = np.stack([u0 > 0, u1 > 0], 1)
+            # Only a re-pairing of row a or of its column is a contest.
+            touches = np.any(used & ((np.arange(2) == a) | (col2 == col_of[:, [a]])), axis=1)
+            total = np.where(used[:, 0] & used[:, 1], u0 + u1, np.where(used[:, 0], u0, u1))
+            margin[:, a] = np.where(touches, best - total, np.inf)
+    done = ~tie
+    handled = np.zeros(n_comp, dtype=bool)
+    handled[np.flatnonzero(small)[done]] = True
+    kept &= done[:, None]
+    f, a = np.nonzero(kept)
+    pairs = np.stack([rows[f, a], cols[f, col_of[f, a]]], 1).astype(np.intp)
+    return handled, pairs, margin[f, a]
 
 
 #: Components of more landmarks (rows or columns) than this get no margins: one assignment per pair would

@@ -71,3 +71,38 @@ def test_associate_batch_is_each_map_pair_associated_alone():
         alone, alone_contested = associate(sc.p, sc.q, KnownTransform(sc.theta, sc.t, cov), sc.sigma)
         np.testing.assert_array_equal(pairs[trial == b], alone)
         np.testing.assert_array_equal(contested[trial == b], alone_contested)
+
+
+def test_two_by_two_components_are_solved_as_the_assignment_solver_does(monkeypatch, rng):
+    """The vectorised 2 x 2 components of ``_assign`` give the solver's pairs and margins, bit for bit."""
+    from mapmerge import association
+
+    real, handled = association._two_by_two, []
+
+    def counting(*args):
+        out = real(*args)
+        handled.append(int(out[0].sum()))
+        return out
+
+    def nothing(i, j, score, comp, with_margin):
+        n = int(comp.max()) + 1 if comp.size else 0
+        return np.zeros(n, dtype=bool), np.empty((0, 2), dtype=np.intp), np.empty(0)
+
+    for k in range(30):
+        n_p, n_q = rng.integers(5, 60, 2)
+        m = int(rng.integers(1, 3 * min(n_p, n_q)))
+        i, j = rng.integers(0, n_p, m), rng.integers(0, n_q, m)
+        first = np.unique(i * n_q + j, return_index=True)[1]
+        i, j = i[first], j[first]
+        score = rng.uniform(-1, 3, len(i))
+        if k % 2:  # many exact ties, which the solver decides
+            score = rng.choice([1.0, 2.0, -1.0], size=len(i)) * rng.integers(1, 3, len(i))
+        for with_margin in (True, False):
+            monkeypatch.setattr(association, "_two_by_two", counting)
+            fast = association._assign(i, j, score, n_p, n_q, with_margin)
+            monkeypatch.setattr(association, "_two_by_two", nothing)
+            slow = association._assign(i, j, score, n_p, n_q, with_margin)
+            np.testing.assert_array_equal(fast[0], slow[0])
+            if with_margin:
+                np.testing.assert_array_equal(fast[1], slow[1])
+    assert sum(handled) > 50  # the fast path did run
