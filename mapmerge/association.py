@@ -173,7 +173,7 @@ def _assign(i, j, score, n_p: int, n_q: int, with_margin: bool):
     p_of.append(pairs_2x2[:, 0])
     q_of.append(pairs_2x2[:, 1])
     margins.append(margins_2x2)
-    rest = ~handled[comp] if comp.size else comp.astype(bool)
+    rest = ~handled[comp]
     i, j, score, comp = i[rest], j[rest], score[rest], comp[rest]
     for rows, cols, gain in component_blocks(i, j, score, comp, 0.0):
         r, c = linear_sum_assignment(gain, maximize=True)
@@ -218,25 +218,24 @@ def _two_by_two(i, j, score, comp, with_margin: bool):
     rows, cols = np.stack([lo_i, hi_i], 1)[small], np.stack([lo_j, hi_j], 1)[small]
 
     def choose(block):
-        """Each block's better assignment: whether it is the diagonal, the entries of rows 0 and 1, a tie."""
+        """Each block's better assignment: the column of row 0 and of row 1, their entries, and a tie."""
         diagonal, anti = block[:, 0, 0] + block[:, 1, 1], block[:, 0, 1] + block[:, 1, 0]
         diag = diagonal > anti
-        return diag, np.where(diag, block[:, 0, 0], block[:, 0, 1]), np.where(diag, block[:, 1, 1], block[:, 1, 0]), \
-            diagonal == anti
+        columns = np.stack([np.where(diag, 0, 1), np.where(diag, 1, 0)], 1)
+        return (columns, np.where(diag, block[:, 0, 0], block[:, 0, 1]), np.where(diag, block[:, 1, 1], block[:, 1, 0]),
+                diagonal == anti)
 
-    diag, v0, v1, tie = choose(g)
+    col_of, v0, v1, tie = choose(g)
     best = v0 + v1  # the assignment's total, as ``value.sum()`` adds it
-    col_of = np.stack([np.where(diag, 0, 1), np.where(diag, 1, 0)], 1)  # column of row 0 and of row 1
     kept = np.stack([v0 > 0, v1 > 0], 1)
     margin = np.full(kept.shape, np.inf)
     if with_margin:
+        every = np.arange(len(g))
         for a in range(2):
             alt = g.copy()
-            f = np.arange(len(g))
-            alt[f, a, col_of[:, a]] = 0.0
-            diag2, u0, u1, tie2 = choose(alt)
+            alt[every, a, col_of[:, a]] = 0.0
+            col2, u0, u1, tie2 = choose(alt)
             tie |= tie2 & kept[:, a]
-            col2 = np.stack([np.where(diag2, 0, 1), np.where(diag2, 1, 0)], 1)
             used = np.stack([u0 > 0, u1 > 0], 1)
             # Only a re-pairing of row a or of its column is a contest.
             touches = np.any(used & ((np.arange(2) == a) | (col2 == col_of[:, [a]])), axis=1)

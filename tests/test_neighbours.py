@@ -88,4 +88,3 @@ def test_cached_kernels_are_dropped_when_any_source_changes(tmp_path):
     (tmp_path / "sub" / "b.py").write_text("y = 3\n")  # a callee's module changed
     assert neighbours.clear_stale_kernels(tmp_path)
     assert not any(path.exists() for path in kernels)
-
