@@ -32,7 +32,15 @@ unrelated pairs only:
    how many are over 5° and how many pair a landmark wrongly) and false
    merges, what a threshold calibrated per cell would give.
    ``calibrated_<n>_<snr>_<quantile>_<code digest>.csv`` keeps the pairs'
-   outcomes.
+   outcomes;
+4. ``acceptance``: how often the triangle test's NFA falls to each of
+   ``NFA_LEVELS`` by chance, on ``--tuning-pairs`` unrelated pairs (seeds
+   300000+k, the global search declining so that only that test decides),
+   and how often it then accepts a right or a wrong transform on the
+   related pairs (seeds 100000+k): the evidence for ``consensus.MATCH_NFA``.
+   On maps of at most ``HOLDOUT_MAX_LANDMARKS`` landmarks it also merges
+   ``--pairs`` held-out unrelated pairs (seeds 600000+k) with the defaults,
+   search included: the false merges of the rule as shipped.
 """
 
 from __future__ import annotations
@@ -44,6 +52,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from joblib import Parallel, delayed
 from scipy.spatial import ConvexHull
 
 import mapmerge as mm
@@ -52,12 +61,22 @@ from mapmerge.exhaustive import Mixture, bump_height, pair_noise
 from . import detector
 from .aggregate import save_table
 from .detector import REPORTED_SEED, STAGE_STATISTICS, TUNING_SEED, consensus_outcome
+from .intervals import wilson
 from .trials import code_digest
 
 #: Unrelated pairs held out from every threshold: seeds HOLDOUT_SEED + k.
 HOLDOUT_SEED = 600_000
 #: Tail probabilities at which the bound's calibration is read.
 LEVELS = (1e-1, 1e-2, 1e-3)
+#: Bounds on the triangle test's NFA at which the ``acceptance`` check counts passes.
+NFA_LEVELS = (1e-6, 1e-4, 1e-3, 1e-2)
+#: The ``acceptance`` check merges held-out pairs in full (the search included) on maps of at most this
+#: many landmarks: there the bound is loosest and a merge is fast; larger maps get the tuning count only.
+HOLDOUT_MAX_LANDMARKS = 20
+#: Where the ``acceptance`` check keeps each cell's pairs (20,000 rows a cell: not committed).
+ROWS = Path("outputs") / "small_maps"
+#: Map pairs per ``merge_batch`` call of the ``acceptance`` check.
+BATCH = 100
 #: ``consensus_outcome``'s columns (``detector.MEASURES``).
 OUTCOME = ("consensus_merged", "consensus_found", "consensus_correct", "consensus_wrong", "tri_log_nfa",
            "tri_hypotheses", "tri_pairs", "tri_found", "search_log_nfa", "search_log_hypotheses", "search_log_tail",
@@ -145,6 +164,76 @@ def calibrated_table(n: int, snr: float, related: int, pairs: int, quantile: flo
             "false_merges": int(hold.merged.sum())}
 
 
+@contextlib.contextmanager
+def triangle_tests(search: bool):
+    """Record consensus's triangle test during ``merge_batch`` calls: yields a dict from a map p's bytes to
+    (NFA, θ, t) of its last test (absent: no consistent group of 3 associations). Without ``search`` the
+    global search declines every pair, so that only the triangle test can accept."""
+    seen, match_nfa_batch, search_pairs = {}, mm.consensus.match_nfa_batch, mm.search.search_pairs
+
+    def recorded(P, Q, theta, t, cov, trial, pairs, n_hypotheses, *args, **kwargs):
+        nfa = match_nfa_batch(P, Q, theta, t, cov, trial, pairs, n_hypotheses, *args, **kwargs)
+        seen.update((p.tobytes(), (nfa[b], theta[b], t[b])) for b, p in enumerate(P))
+        return nfa
+
+    def declined(P, Q, sigma, cov_p=None, cov_q=None):
+        return np.empty((0, 2), dtype=np.intp), np.empty(0, dtype=bool), np.inf
+
+    mm.consensus.match_nfa_batch = recorded
+    if not search:
+        mm.search.search_pairs = declined
+    try:
+        yield seen
+    finally:
+        mm.consensus.match_nfa_batch, mm.search.search_pairs = match_nfa_batch, search_pairs
+
+
+def acceptance_rows(n: int, layout: str, snr: float, seeds, unrelated: bool, search: bool) -> list[tuple]:
+    """(seed, triangle log NFA (inf: no test), its transform found, merged) of consensus on the detector's pairs
+    ``seeds``, in batches; without ``search`` the triangle test alone decides."""
+    rows = []
+    for start in range(0, len(seeds), BATCH):
+        chunk = [int(s) for s in seeds[start:start + BATCH]]
+        sc = mm.simulate.make_pairs(n, 0.75, snr, chunk, unrelated=unrelated, layout=layout)
+        with triangle_tests(search) as seen:
+            merged = mm.merge_batch(sc.p, sc.q, sc.sigma).matched
+        for b, seed in enumerate(chunk):
+            nfa, theta, t = seen.get(sc.p[b].tobytes(), (np.inf, None, None))
+            found = theta is not None and not unrelated and mm.metrics.transform_found(sc[b], theta, t)
+            with np.errstate(divide="ignore"):
+                rows.append((seed, float(np.log(nfa)), bool(found), bool(merged[b])))
+    return rows
+
+
+def acceptance_table(n: int, layout: str, snr: float, tuning: int, related: int, holdout: int) -> dict:
+    """The triangle test's passes at each of ``NFA_LEVELS`` on unrelated tuning pairs and its found rate on
+    related pairs, alone; the default rule's false merges on held-out unrelated pairs (maps of at most
+    ``HOLDOUT_MAX_LANDMARKS`` landmarks)."""
+    holdout = holdout if n <= HOLDOUT_MAX_LANDMARKS else 0
+    path = ROWS / f"acceptance_{n}_{layout}_{snr:g}_{code_digest(detector.__file__)[:12]}.csv"
+    sets = (("tuning", TUNING_SEED, tuning, True, False), ("related", REPORTED_SEED, related, False, False),
+            ("holdout", HOLDOUT_SEED, holdout, True, True))
+    rows = pd.read_csv(path) if path.is_file() else None
+    if rows is None or [int(np.sum(rows.kind == kind)) for kind, *_ in sets] != [c for _, _, c, _, _ in sets]:
+        rows = pd.DataFrame([(kind, *row) for kind, base, count, unrelated, search in sets
+                             for row in acceptance_rows(n, layout, snr, base + np.arange(count), unrelated, search)],
+                            columns=["kind", "seed", "tri_log_nfa", "tri_found", "merged"])
+        rows.to_csv(path, index=False, float_format="%.10g")
+    null, rel, hold = (rows[rows.kind == kind] for kind, *_ in sets)
+    row = {"n_landmarks": n, "layout": layout, "snr_db": snr, "tuning_pairs": len(null)}
+    for level in NFA_LEVELS:
+        row[f"tuning_pass_{level:g}"] = int(np.sum(null.tri_log_nfa <= np.log(level)))
+    row["related_pairs"] = len(rel)
+    for level in NFA_LEVELS:
+        accepted = rel.tri_log_nfa <= np.log(level)
+        row[f"found_{level:g}"] = float(np.mean(accepted & rel.tri_found))
+        row[f"wrong_{level:g}"] = float(np.mean(accepted & ~rel.tri_found))
+    merges = int(hold.merged.sum())
+    row.update(holdout_pairs=len(hold), holdout_false_merges=merges if len(hold) else np.nan,
+               holdout_false_upper=float(wilson(merges, len(hold))[1]) if len(hold) else np.nan)
+    return row
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description="The search's bound at one transform; held-out null pairs.")
     parser.add_argument("--landmarks", type=int, nargs="+", default=[10, 20])
@@ -152,7 +241,13 @@ def main(argv=None) -> None:
     parser.add_argument("--pairs", type=int, default=10_000, help="held-out unrelated pairs per cell")
     parser.add_argument("--bound-pairs", type=int, default=2_000, help="unrelated pairs per cell of the bound check")
     parser.add_argument("--out", default="results/detector/small")
-    parser.add_argument("--checks", nargs="+", choices=("bound", "holdout", "calibrated"), default=["bound", "holdout"])
+    parser.add_argument("--checks", nargs="+", choices=("bound", "holdout", "calibrated", "acceptance"),
+                        default=["bound", "holdout"])
+    parser.add_argument("--layouts", nargs="+", choices=("strip", "interleaved"), default=["strip"],
+                        help="layouts of the acceptance check")
+    parser.add_argument("--tuning-pairs", type=int, default=10_000, help="unrelated tuning pairs per cell of the "
+                        "acceptance check")
+    parser.add_argument("--n-jobs", type=int, default=1, help="cells of the acceptance check run in parallel")
     parser.add_argument("--related", type=int, default=500, help="related pairs per cell of the calibrated check")
     parser.add_argument("--quantile", type=float, default=2e-4, help="tuning quantile of the calibrated check")
     args = parser.parse_args(argv)
@@ -180,6 +275,18 @@ def main(argv=None) -> None:
         table = pd.DataFrame([calibrated_table(n, snr, args.related, args.pairs, args.quantile, tuning, out)
                               for n, snr in cells])
         for path in save_table(table, out / "calibrated"):
+            print(path)
+    if "acceptance" in args.checks:
+        if min(args.tuning_pairs, args.related) < 1 or args.n_jobs < 1:
+            raise SystemExit(f"--tuning-pairs, --related and --n-jobs must be >= 1, got {args.tuning_pairs}, "
+                             f"{args.related}, {args.n_jobs}")
+        ROWS.mkdir(parents=True, exist_ok=True)
+        out.mkdir(parents=True, exist_ok=True)
+        jobs = list(itertools.product(args.landmarks, args.layouts, args.snrs))
+        table = pd.DataFrame(Parallel(n_jobs=args.n_jobs)(
+            delayed(acceptance_table)(n, layout, snr, args.tuning_pairs, args.related, args.pairs)
+            for n, layout, snr in jobs))
+        for path in save_table(table, out / "acceptance"):
             print(path)
 
 

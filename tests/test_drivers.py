@@ -54,6 +54,29 @@ def test_detector_recomputes_the_pairs_other_code_wrote(tmp_path, monkeypatch):
     assert len(calls) == 16
 
 
+def test_small_maps_acceptance_check_records_the_triangle_test_of_each_pair(tmp_path, monkeypatch):
+    import mapmerge as mm
+    from experiments import detector, small_maps
+
+    monkeypatch.setattr(small_maps, "ROWS", tmp_path)
+    search = mm.search.search_pairs
+    row = small_maps.acceptance_table(10, "strip", 30.0, 6, 4, 3)
+    assert mm.search.search_pairs is search
+    assert (row["tuning_pairs"], row["related_pairs"], row["holdout_pairs"]) == (6, 4, 3)
+    passes = [row[f"tuning_pass_{level:g}"] for level in small_maps.NFA_LEVELS]
+    assert passes == sorted(passes) and 0 <= row["holdout_false_merges"] <= 3
+    for level in small_maps.NFA_LEVELS:
+        assert 0 <= row[f"found_{level:g}"] + row[f"wrong_{level:g}"] <= 1
+    # The batch's recorded NFA of a pair is the one the detector records when it merges that pair alone.
+    rows = pd.read_csv(next(tmp_path.glob("acceptance_10_strip_30_*.csv")))
+    related = rows[rows.kind == "related"].iloc[0]
+    alone = detector.consensus_outcome(10, "strip", 30.0, int(related.seed), False)
+    assert related.tri_log_nfa == pytest.approx(alone[4], rel=1e-9) and related.tri_found == alone[7]
+    # Beyond HOLDOUT_MAX_LANDMARKS no held-out pair is merged.
+    monkeypatch.setattr(small_maps, "HOLDOUT_MAX_LANDMARKS", 5)
+    assert small_maps.acceptance_table(10, "strip", 30.0, 2, 1, 3)["holdout_pairs"] == 0
+
+
 def test_small_maps_calibrated_check_loosens_the_triangle_test_and_restores_it(tmp_path):
     from mapmerge import consensus
     from experiments import small_maps
