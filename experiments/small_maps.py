@@ -248,7 +248,8 @@ def main(argv=None) -> None:
     parser.add_argument("--tuning-pairs", type=int, default=10_000, help="unrelated tuning pairs per cell of the "
                         "acceptance check")
     parser.add_argument("--n-jobs", type=int, default=1, help="cells of the acceptance check run in parallel")
-    parser.add_argument("--related", type=int, default=500, help="related pairs per cell of the calibrated check")
+    parser.add_argument("--related", type=int, default=500,
+                        help="related pairs per cell of the calibrated and acceptance checks")
     parser.add_argument("--quantile", type=float, default=2e-4, help="tuning quantile of the calibrated check")
     args = parser.parse_args(argv)
     if min(args.pairs, args.bound_pairs) < 1:
