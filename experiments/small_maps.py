@@ -218,6 +218,7 @@ def acceptance_table(n: int, layout: str, snr: float, tuning: int, related: int,
         rows = pd.DataFrame([(kind, *row) for kind, base, count, unrelated, search in sets
                              for row in acceptance_rows(n, layout, snr, base + np.arange(count), unrelated, search)],
                             columns=["kind", "seed", "tri_log_nfa", "tri_found", "merged"])
+        path.parent.mkdir(parents=True, exist_ok=True)
         rows.to_csv(path, index=False, float_format="%.10g")
     null, rel, hold = (rows[rows.kind == kind] for kind, *_ in sets)
     row = {"n_landmarks": n, "layout": layout, "snr_db": snr, "tuning_pairs": len(null)}
@@ -281,7 +282,6 @@ def main(argv=None) -> None:
         if min(args.tuning_pairs, args.related) < 1 or args.n_jobs < 1:
             raise SystemExit(f"--tuning-pairs, --related and --n-jobs must be >= 1, got {args.tuning_pairs}, "
                              f"{args.related}, {args.n_jobs}")
-        ROWS.mkdir(parents=True, exist_ok=True)
         out.mkdir(parents=True, exist_ok=True)
         jobs = list(itertools.product(args.landmarks, args.layouts, args.snrs))
         table = pd.DataFrame(Parallel(n_jobs=args.n_jobs)(
