@@ -228,28 +228,28 @@ def _recorded_tests():
 
     ``merge_maps`` returns the decision only; to see how far each stage was
     from accepting, ``consensus.match_nfa_batch`` and the fallback
-    ``search.search_pairs`` (both looked up at call time) are wrapped for
+    ``search.search_batch`` (both looked up at call time) are wrapped for
     the duration. Yields a dict: ``"triangles"``: (NFA, hypotheses, pairs,
     alignment) of the last triangle test, ``"search"``: the search's NFA.
     The merge is of one map pair, so each batch holds one.
     """
-    seen, match_nfa_batch, search_pairs = {}, mm.consensus.match_nfa_batch, mm.search.search_pairs
+    seen, match_nfa_batch, search_batch = {}, mm.consensus.match_nfa_batch, mm.search.search_batch
 
     def recorded_match_nfa_batch(P, Q, theta, t, cov, trial, pairs, n_hypotheses, *args, **kwargs):
         nfa = match_nfa_batch(P, Q, theta, t, cov, trial, pairs, n_hypotheses, *args, **kwargs)
         seen["triangles"] = (nfa[0], n_hypotheses[0], len(pairs), SimpleNamespace(theta=theta[0], t=t[0]))
         return nfa
 
-    def recorded_search_pairs(*args, **kwargs):
-        out = search_pairs(*args, **kwargs)
-        seen["search"] = out[2]
+    def recorded_search_batch(*args, **kwargs):
+        out = search_batch(*args, **kwargs)
+        seen["search"] = out[3][0]
         return out
 
-    mm.consensus.match_nfa_batch, mm.search.search_pairs = recorded_match_nfa_batch, recorded_search_pairs
+    mm.consensus.match_nfa_batch, mm.search.search_batch = recorded_match_nfa_batch, recorded_search_batch
     try:
         yield seen
     finally:
-        mm.consensus.match_nfa_batch, mm.search.search_pairs = match_nfa_batch, search_pairs
+        mm.consensus.match_nfa_batch, mm.search.search_batch = match_nfa_batch, search_batch
 
 
 def search_hypotheses(P, Q, sigma: float) -> float:

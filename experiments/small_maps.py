@@ -169,7 +169,7 @@ def triangle_tests(search: bool):
     """Record consensus's triangle test during ``merge_batch`` calls: yields a dict from a map p's bytes to
     (NFA, θ, t) of its last test (absent: no consistent group of 3 associations). Without ``search`` the
     global search declines every pair, so that only the triangle test can accept."""
-    seen, match_nfa_batch, search_pairs = {}, mm.consensus.match_nfa_batch, mm.search.search_pairs
+    seen, match_nfa_batch, search_batch = {}, mm.consensus.match_nfa_batch, mm.search.search_batch
 
     def recorded(P, Q, theta, t, cov, trial, pairs, n_hypotheses, *args, **kwargs):
         nfa = match_nfa_batch(P, Q, theta, t, cov, trial, pairs, n_hypotheses, *args, **kwargs)
@@ -177,15 +177,16 @@ def triangle_tests(search: bool):
         return nfa
 
     def declined(P, Q, sigma, cov_p=None, cov_q=None):
-        return np.empty((0, 2), dtype=np.intp), np.empty(0, dtype=bool), np.inf
+        return (np.empty(0, dtype=np.intp), np.empty((0, 2), dtype=np.intp), np.empty(0, dtype=bool),
+                np.full(len(P), np.inf))
 
     mm.consensus.match_nfa_batch = recorded
     if not search:
-        mm.search.search_pairs = declined
+        mm.search.search_batch = declined
     try:
         yield seen
     finally:
-        mm.consensus.match_nfa_batch, mm.search.search_pairs = match_nfa_batch, search_pairs
+        mm.consensus.match_nfa_batch, mm.search.search_batch = match_nfa_batch, search_batch
 
 
 def acceptance_rows(n: int, layout: str, snr: float, seeds, unrelated: bool, search: bool) -> list[tuple]:

@@ -454,9 +454,9 @@ def consensus_merge(P, Q, sigma, match: TriangleMatch, log_tau, cov_p=None, cov_
     cov_p, cov_q : (B, n, 2, 2) ndarray, optional
         Per-landmark covariances.
     fallback : callable, optional
-        ``fallback(P, Q, sigma, cov_p, cov_q) -> (pairs, contested, nfa)``
-        for one map pair, run when the triangles give no significant match
-        (``search.search_pairs``: the global search).
+        ``fallback(P, Q, sigma, cov_p, cov_q) -> (trial, pairs, contested, nfa)``
+        for the map pairs whose triangles give no significant match, all at
+        once (``search.search_batch``: the global search).
 
     Returns
     -------
@@ -468,14 +468,21 @@ def consensus_merge(P, Q, sigma, match: TriangleMatch, log_tau, cov_p=None, cov_
     """
     trial, pairs, n_conflicts, n_candidates = _triangle_correspondences(P, Q, sigma, match, log_tau)
     trial, pairs, contested = _verified_pairs(P, Q, sigma, trial, pairs, n_candidates, cov_p, cov_q)
+    if fallback is not None:
+        unmatched = np.flatnonzero(np.bincount(trial, minlength=len(P)) == 0)
+        if unmatched.size:
+            found, more, more_contested, _ = fallback(P[unmatched], Q[unmatched], sigma[unmatched],
+                                                      _rows(cov_p, unmatched), _rows(cov_q, unmatched))
+            trial = np.concatenate([trial, unmatched[found]])
+            order = np.argsort(trial, kind="stable")
+            trial = trial[order]
+            pairs = np.concatenate([pairs, more])[order]
+            contested = np.concatenate([contested, more_contested])[order]
     bounds = np.searchsorted(trial, np.arange(len(P) + 1))
     match_bounds = np.searchsorted(match.trial, np.arange(len(P) + 1))
     parts = []
     for b in range(len(P)):
         pairs_b, contested_b = pairs[bounds[b]:bounds[b + 1]], contested[bounds[b]:bounds[b + 1]]
-        if len(pairs_b) == 0 and fallback is not None:
-            cp, cq = (None, None) if cov_p is None else (cov_p[b], cov_q[b])
-            pairs_b, contested_b, _ = fallback(P[b], Q[b], float(sigma[b]), cp, cq)
         tri_p, tri_q = match.tri_p[b].vertices, match.tri_q[b].vertices
         sel = slice(match_bounds[b], match_bounds[b + 1])
         lp_pairs, lp_scores = match.triangle_pairs[sel], match.log_lr[sel]

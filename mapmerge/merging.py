@@ -95,7 +95,7 @@ def _declared_merge(x: MergeInputs) -> MergeBatch:
 def _consensus_merge(x: MergeInputs) -> MergeBatch:
     """``consensus``: verification, association and acceptance; the global search when triangles find nothing."""
     return consensus.consensus_merge(x.P, x.Q, x.sigma, x.match, x.log_tau, x.cov_p, x.cov_q,
-                                     fallback=x.search_memo or search.search_pairs)
+                                     fallback=x.search_memo or search.search_batch)
 
 
 def _search_merge(x: MergeInputs) -> MergeBatch:

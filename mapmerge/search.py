@@ -24,8 +24,8 @@ without any correspondence:
    Chernoff's inequality, computed from p's own landmarks (no tuning, no
    sampling). With H the number of (rotation, translation) hypotheses at
    resolution r, ``NFA = H · P(Λ >= observed)``, and the best hypothesis is
-   accepted when NFA <= ``SEARCH_NFA``; its landmarks are then associated by
-   ``association.associate``. Λ pools the evidence of every landmark, weighed
+   accepted when NFA <= ``SEARCH_NFA``; its landmarks are then associated (a batch
+   of map pairs at once, ``association.associate_batch``). Λ pools the evidence of every landmark, weighed
    by how close it lies to its partner, which no single landmark carries at
    10 dB, where a chance partner lies within the noise of most landmarks.
    Where the noise exceeds ``MAX_NOISE_SPACING`` landmark spacings (about
@@ -60,7 +60,7 @@ import numpy as np
 from scipy.spatial import ConvexHull, cKDTree
 
 from .alignment import Alignment, fit_transforms
-from .association import associate, declared_triangles
+from .association import associate_batch, declared_triangles
 from .exhaustive import Mixture, bump_height, pair_noise
 from .neighbours import cell_grid, nearest_within, njit
 from .result import MergeBatch, build_from_parts
@@ -271,30 +271,13 @@ def _log_nfa(Q, hypotheses, model: Mixture, n_hypotheses: float):
     return np.log(n_hypotheses) + model.null_log_tail(log_lr, n_inside), fitted
 
 
-def search_pairs(P, Q, sigma: float, cov_p=None, cov_q=None):
-    """Landmark associations of one map pair found by the global search.
-
-    Parameters
-    ----------
-    P, Q : (n_p, 2), (n_q, 2) ndarray
-    sigma : float
-    cov_p, cov_q : (n, 2, 2) ndarray, optional
-        Per-landmark covariances (the pair noise and the association use them).
-
-    Returns
-    -------
-    pairs : (K, 2) int ndarray
-        Associations (empty when no hypothesis is significant).
-    contested : (K,) bool ndarray
-    nfa : float
-        Number of false alarms of the best hypothesis (inf when none could be
-        refined, or the noise exceeds ``MAX_NOISE_SPACING`` landmark spacings).
-    """
+def _best_hypothesis(P, Q, sigma: float, cov_p, cov_q, hull):
+    """Steps 1-4 on one map pair: its best hypothesis when significant (else None) and its NFA
+    (inf when none could be refined, or the noise exceeds ``MAX_NOISE_SPACING`` landmark spacings).
+    ``hull``: P's convex hull."""
     r = pair_noise(sigma, cov_p, cov_q)
-    empty = np.empty((0, 2), dtype=np.intp), np.empty(0, dtype=bool)
-    hull = ConvexHull(P)
     if r > MAX_NOISE_SPACING * np.sqrt(hull.volume / len(P)):
-        return *empty, np.inf
+        return None, np.inf
     Ps, Qs = _thinned(P, MAX_SEARCH_LANDMARKS), _thinned(Q, MAX_SEARCH_LANDMARKS)
     thetas, ts, cell, n_hyp = _hypotheses(Ps, Qs, r, hull if Ps is P else ConvexHull(Ps))
     refined = [al for al in _refine(Ps, Qs, thetas, ts, r, cell, sigma) if al is not None]
@@ -303,54 +286,143 @@ def search_pairs(P, Q, sigma: float, cov_p=None, cov_q=None):
         refined = [al for al in _refine(P, Q, [al.theta for al in refined], [al.t for al in refined], r, r, sigma)
                    if al is not None]
     if not refined:
-        return *empty, np.inf
+        return None, np.inf
     model = Mixture.of_map(P, r, bump_height(len(P), hull.volume, r, MIXTURE_PRIOR), MIXTURE_PRIOR, hull)
     log_nfa, refined = _log_nfa(Q, refined, model, n_hyp)
     best = int(np.argmin(log_nfa))
     nfa = float(np.exp(min(log_nfa[best], 700.0)))
-    if log_nfa[best] > np.log(SEARCH_NFA):
-        return *empty, nfa
-    pairs, contested = associate(P, Q, refined[best], sigma, cov_p, cov_q, (hull, ConvexHull(Q)))
-    if len(pairs) < 3:
-        return *empty, nfa
-    return pairs, contested, nfa
+    return (None if log_nfa[best] > np.log(SEARCH_NFA) else refined[best]), nfa
+
+
+def search_batch(P, Q, sigma, cov_p=None, cov_q=None):
+    """Landmark associations of B map pairs found by the global search.
+
+    Each pair's hypotheses are searched, refined and tested on their own
+    (steps 1-4); the significant ones are associated together, in one
+    ``association.associate_batch``.
+
+    Parameters
+    ----------
+    P, Q : (B, n_p, 2), (B, n_q, 2) ndarray
+    sigma : (B,) ndarray
+    cov_p, cov_q : (B, n, 2, 2) ndarray, optional
+        Per-landmark covariances (the pair noise and the association use them).
+
+    Returns
+    -------
+    trial : (K,) int ndarray
+        Map pair of each association (none for a pair whose best hypothesis
+        is not significant or associates fewer than 3 landmarks).
+    pairs : (K, 2) int ndarray
+        Associations (p index, q index), by map pair, then p index.
+    contested : (K,) bool ndarray
+    nfa : (B,) ndarray
+        Number of false alarms of each pair's best hypothesis (inf when none
+        could be refined, or the noise exceeds ``MAX_NOISE_SPACING`` landmark
+        spacings).
+    """
+    B = len(P)
+    nfa, found, hulls = np.empty(B), [], []
+    for b in range(B):
+        hull = ConvexHull(P[b])
+        best, nfa[b] = _best_hypothesis(P[b], Q[b], float(sigma[b]), None if cov_p is None else cov_p[b],
+                                        None if cov_q is None else cov_q[b], hull)
+        if best is not None:
+            found.append((b, best))
+            hulls.append((hull, ConvexHull(Q[b])))
+    if not found:
+        return np.empty(0, dtype=np.intp), np.empty((0, 2), dtype=np.intp), np.empty(0, dtype=bool), nfa
+    rows = np.array([b for b, _ in found])
+    trial, pairs, contested = associate_batch(
+        P[rows], Q[rows], np.array([al.theta for _, al in found]), np.stack([al.t for _, al in found]),
+        np.stack([al.cov for _, al in found]), np.asarray(sigma, dtype=float)[rows],
+        None if cov_p is None else cov_p[rows], None if cov_q is None else cov_q[rows], hulls)
+    trial = rows[trial]
+    keep = np.bincount(trial, minlength=B)[trial] >= 3
+    return trial[keep], pairs[keep], contested[keep], nfa
+
+
+def search_pairs(P, Q, sigma: float, cov_p=None, cov_q=None):
+    """Landmark associations of one map pair found by the global search (``search_batch`` of one pair).
+
+    Parameters
+    ----------
+    P, Q : (n_p, 2), (n_q, 2) ndarray
+    sigma : float
+    cov_p, cov_q : (n, 2, 2) ndarray, optional
+
+    Returns
+    -------
+    pairs : (K, 2) int ndarray
+        Associations (empty when no hypothesis is significant).
+    contested : (K,) bool ndarray
+    nfa : float
+        Number of false alarms of the best hypothesis.
+    """
+    one = (lambda a: None if a is None else np.asarray(a)[None])
+    _, pairs, contested, nfa = search_batch(np.asarray(P)[None], np.asarray(Q)[None], np.array([sigma], dtype=float),
+                                            one(cov_p), one(cov_q))
+    return pairs, contested, float(nfa[0])
+
+
+def _digest(*parts) -> bytes:
+    """A digest of arrays (None: empty), with their shapes."""
+    digest = hashlib.sha256()
+    for part in parts:
+        part = np.empty(0) if part is None else np.ascontiguousarray(part, dtype=float)
+        digest.update(repr(part.shape).encode() + part.tobytes())
+    return digest.digest()
 
 
 class SearchMemo:
-    """``search_pairs`` remembering its answers, for a caller that merges the
+    """``search_batch`` remembering its answers, for a caller that merges the
     same map pairs again (the harness merges each pair once per τ rule, and
-    the search does not depend on τ). Keyed by a digest of the inputs; the
-    answers are the same arrays' copies, so they are bit for bit the search's.
+    the search does not depend on τ). Each map pair is keyed by a digest of
+    its inputs, and only the pairs not seen before are searched (in one
+    batch); the answers are copies of the search's own arrays, so they are
+    bit for bit the search's.
     """
 
     def __init__(self) -> None:
         self._answers: dict[bytes, tuple] = {}
 
-    def __call__(self, P, Q, sigma: float, cov_p=None, cov_q=None):
-        digest = hashlib.sha256()
-        for part in (P, Q, np.float64(sigma), cov_p, cov_q):
-            part = np.empty(0) if part is None else np.ascontiguousarray(part, dtype=float)
-            digest.update(repr(part.shape).encode() + part.tobytes())
-        key = digest.digest()
-        if key not in self._answers:
-            self._answers[key] = search_pairs(P, Q, sigma, cov_p, cov_q)
-        pairs, contested, nfa = self._answers[key]
-        return pairs.copy(), contested.copy(), nfa
+    def __call__(self, P, Q, sigma, cov_p=None, cov_q=None):
+        keys = [_digest(P[b], Q[b], np.float64(sigma[b]), None if cov_p is None else cov_p[b],
+                        None if cov_q is None else cov_q[b]) for b in range(len(P))]
+        first = {}  # each map pair not seen before, once
+        for b, key in enumerate(keys):
+            if key not in self._answers:
+                first.setdefault(key, b)
+        new = np.array(list(first.values()), dtype=np.intp)
+        if new.size:
+            trial, pairs, contested, nfa = search_batch(P[new], Q[new], np.asarray(sigma)[new],
+                                                        None if cov_p is None else cov_p[new],
+                                                        None if cov_q is None else cov_q[new])
+            bounds = np.searchsorted(trial, np.arange(new.size + 1))
+            for k, b in enumerate(new):
+                sel = slice(bounds[k], bounds[k + 1])
+                self._answers[keys[b]] = (pairs[sel], contested[sel], nfa[k])
+        answers = [self._answers[key] for key in keys]
+        trial = np.repeat(np.arange(len(P)), [len(pairs) for pairs, _, _ in answers])
+        return (trial, np.concatenate([pairs for pairs, _, _ in answers]).astype(np.intp).reshape(-1, 2),
+                np.concatenate([contested for _, contested, _ in answers]).astype(bool),
+                np.array([nfa for _, _, nfa in answers], dtype=float))
 
 
 def search_merge(P, Q, sigma, tri_p: TriangleBatch, tri_q: TriangleBatch, cov_p=None, cov_q=None) -> MergeBatch:
-    """The ``method="search"`` merge of B map pairs (one search per pair).
+    """The ``method="search"`` merge of B map pairs (``search_batch``).
 
     Triangles are not used to find the transform; the triangle pairs whose
     three landmarks were associated (and not contested) are reported as
     declared, with their log Λ.
     """
+    trial, pairs, contested, _ = search_batch(P, Q, sigma, cov_p, cov_q)
+    bounds = np.searchsorted(trial, np.arange(len(P) + 1))
     parts = []
     for b in range(len(P)):
-        pairs, contested, _ = search_pairs(P[b], Q[b], float(sigma[b]), None if cov_p is None else cov_p[b],
-                                           None if cov_q is None else cov_q[b])
-        tri_pairs, scores = declared_triangles(tri_p[b].vertices, tri_q[b].vertices, pairs[~contested],
+        pairs_b, contested_b = pairs[bounds[b]:bounds[b + 1]], contested[bounds[b]:bounds[b + 1]]
+        tri_pairs, scores = declared_triangles(tri_p[b].vertices, tri_q[b].vertices, pairs_b[~contested_b],
                                                P[b], Q[b], float(sigma[b]))
-        parts.append((tri_pairs, scores, np.ones(len(tri_pairs), bool), pairs, 0))
+        parts.append((tri_pairs, scores, np.ones(len(tri_pairs), bool), pairs_b, 0))
     return build_from_parts(method="search", P=P, Q=Q, sigma=sigma, log_tau=np.full(len(P), np.nan),
                             tri_p=tri_p, tri_q=tri_q, parts=parts)

@@ -81,19 +81,34 @@ def test_thinned_maps_are_the_local_maxima_over_all_k_nearest(n):
 
 
 def test_search_memo_answers_repeated_searches_once_and_bit_for_bit(monkeypatch):
-    sc = mm.simulate.make_pair(40, 0.75, 20, rng=7)
-    first = search.search_pairs(sc.p, sc.q, sc.sigma)
-    assert len(first[0]) >= 3
-    calls = []
-    real = search.search_pairs
-    monkeypatch.setattr(search, "search_pairs", lambda *a: calls.append(1) or real(*a))
+    sc = mm.simulate.make_pairs(40, 0.75, 20, [7, 8, 9])
+    alone = [search.search_pairs(sc.p[b], sc.q[b], sc.sigma[b]) for b in range(3)]
+    assert all(len(pairs) >= 3 for pairs, _, _ in alone)
+    searched = []
+    real = search.search_batch
+    monkeypatch.setattr(search, "search_batch", lambda P, *a: searched.append(len(P)) or real(P, *a))
     memo = search.SearchMemo()
-    a = memo(sc.p, sc.q, sc.sigma)
-    a[0][:] = -1  # the caller's copy, not the memo's
-    b = memo(sc.p, sc.q, sc.sigma)
-    assert len(calls) == 1 and np.array_equal(b[0], first[0]) and np.array_equal(b[1], first[1]) and b[2] == first[2]
-    memo(sc.p, sc.q, sc.sigma, sc.cov_p, sc.cov_q)  # other inputs: searched again
-    assert len(calls) == 2
+    rows = np.array([1, 0, 1])  # a repeated pair is searched once
+    a = memo(sc.p[rows], sc.q[rows], sc.sigma[rows])
+    a[1][:] = -1  # the caller's copy, not the memo's
+    trial, pairs, contested, nfa = memo(sc.p[rows], sc.q[rows], sc.sigma[rows])
+    assert searched == [2]
+    for k, b in enumerate(rows):
+        assert np.array_equal(pairs[trial == k], alone[b][0]) and np.array_equal(contested[trial == k], alone[b][1])
+        assert nfa[k] == alone[b][2]
+    memo(sc.p, sc.q, sc.sigma)  # only the pair not seen before is searched
+    memo(sc.p[:1], sc.q[:1], sc.sigma[:1], sc.cov_p[:1], sc.cov_q[:1])  # other inputs: searched again
+    assert searched == [2, 1, 1]
+
+
+def test_search_batch_equals_each_pair_searched_alone():
+    sc = mm.simulate.make_pairs(30, 0.75, 15, list(range(20, 28)))
+    trial, pairs, contested, nfa = search.search_batch(sc.p, sc.q, sc.sigma)
+    assert 0 < len(np.unique(trial)) < len(sc)  # some pairs found, some not
+    for b in range(len(sc)):
+        alone = search.search_pairs(sc.p[b], sc.q[b], sc.sigma[b])
+        assert np.array_equal(pairs[trial == b], alone[0]) and np.array_equal(contested[trial == b], alone[1])
+        assert nfa[b] == alone[2]
 
 
 def test_search_declines_where_the_noise_is_comparable_to_the_landmark_spacing():
