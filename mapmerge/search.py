@@ -24,10 +24,11 @@ without any correspondence:
    Chernoff's inequality, computed from p's own landmarks (no tuning, no
    sampling). With H the number of (rotation, translation) hypotheses at
    resolution r, ``NFA = H · P(Λ >= observed)``, and the best hypothesis is
-   accepted when NFA <= ``SEARCH_NFA``; its landmarks are then associated (a batch
-   of map pairs at once, ``association.associate_batch``). Λ pools the evidence of every landmark, weighed
-   by how close it lies to its partner, which no single landmark carries at
-   10 dB, where a chance partner lies within the noise of most landmarks.
+   accepted when NFA <= ``SEARCH_NFA``; its landmarks are then associated
+   (``association.associate_batch``, every map pair of a batch at once).
+   Λ pools the evidence of every landmark, weighed by how close it lies to
+   its partner, which no single landmark carries at 10 dB, where a chance
+   partner lies within the noise of most landmarks.
    Where the noise exceeds ``MAX_NOISE_SPACING`` landmark spacings (about
    0-2.5 dB) the bound fails over the search as a whole, and the maps hold
    no transform a search could find: the search then declines.
