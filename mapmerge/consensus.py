@@ -90,16 +90,19 @@ def _misfit2(p, q, c, s, tx, ty):
 
 
 @njit(cache=True)
-def _gate_d2_kernel(cp, cq, cos, sin, t, var):
-    """``_gate_d2`` for H transforms (cos θ, sin θ: (H,), from numpy, whose trigonometry sets the bits):
-    (H, m) misfits of m triangle pairs, var (H, m, 3)."""
-    d2 = np.empty((len(cos), cp.shape[0]))
+def _gate_d2_kernel(cp, cq, first, size, cos, sin, t, var):
+    """χ²₆-distributed misfits of triangle pairs under H transforms (cos θ, sin θ: (H,), from numpy, whose
+    trigonometry sets the bits): transform h against pairs ``first[h]:first[h] + size[h]`` of cp, cq
+    ((m, 3, 2)); var (Σ size, 3). Returns (Σ size,), transform by transform."""
+    d2 = np.empty(size.sum())
+    m = 0
     for h in range(len(cos)):
-        for k in range(cp.shape[0]):
+        for k in range(first[h], first[h] + size[h]):
             acc = 0.0
             for v in range(3):
-                acc += _misfit2(cp[k, v], cq[k, v], cos[h], sin[h], t[h, 0], t[h, 1]) / var[h, k, v]
-            d2[h, k] = acc
+                acc += _misfit2(cp[k, v], cq[k, v], cos[h], sin[h], t[h, 0], t[h, 1]) / var[m, v]
+            d2[m] = acc
+            m += 1
     return d2
 
 
@@ -107,115 +110,211 @@ def _gate_d2(cp, cq, theta, t, var):
     """χ²₆-distributed misfit of m paired triangles (cp, cq: (m, 3, 2)) under one transform (θ scalar,
     t (2,), var (m, 3)) or under H (θ (H,), t (H, 2), var (H, m, 3)): (m,) or (H, m)."""
     theta = np.asarray(theta, dtype=float)
-    d2 = _gate_d2_kernel(cp, cq, np.cos(theta.reshape(-1)), np.sin(theta.reshape(-1)), np.reshape(t, (-1, 2)),
-                         np.reshape(var, (-1,) + cp.shape[:2]))
+    H, m = theta.size, len(cp)
+    d2 = _gate_d2_kernel(cp, cq, np.zeros(H, dtype=np.int64), np.full(H, m, dtype=np.int64),
+                         np.cos(theta.reshape(-1)), np.sin(theta.reshape(-1)), np.reshape(t, (-1, 2)),
+                         np.reshape(var, (-1, 3)))
     return d2.reshape(theta.shape + cp.shape[:1])
 
 
 @njit(cache=True)
-def _hypothesis_inliers(cp, cq, cos, sin, t, centre, spread, two_var, gate):
-    """Which of m candidate pairs (cp, cq: (m, 3, 2)) each 3-point hypothesis (cos θ, sin θ, t, its p
-    triangle's centroid and Σ‖p̃‖²) gates in: (H, m) bool.
+def _hypothesis_inliers(cp, cq, first, size, cos, sin, t, centre, spread, two_var, gate):
+    """Which candidate pairs each 3-point hypothesis (cos θ, sin θ, t, its p triangle's centroid and
+    Σ‖p̃‖²) gates in: hypothesis h against pairs ``first[h]:first[h] + size[h]`` of cp, cq ((m, 3, 2)).
+    Returns (Σ size,) bool, hypothesis by hypothesis.
 
     Per coordinate the variance is both maps' noise, t's at the centroid (2σ²/3) and the rotation error
-    2σ²/Σ‖p̃‖² times the squared lever arm; ``two_var`` is 2σ².
+    2σ²/Σ‖p̃‖² times the squared lever arm; ``two_var`` (H,) is 2σ².
     """
-    inliers = np.empty((len(cos), cp.shape[0]), dtype=np.bool_)
+    inliers = np.empty(size.sum(), dtype=np.bool_)
+    m = 0
     for h in range(len(cos)):
-        for k in range(cp.shape[0]):
+        for k in range(first[h], first[h] + size[h]):
             acc = 0.0
             for v in range(3):
                 dx, dy = cp[k, v, 0] - centre[h, 0], cp[k, v, 1] - centre[h, 1]
-                var = two_var * (1 + 1 / 3 + (dx * dx + dy * dy) / spread[h])
+                var = two_var[h] * (1 + 1 / 3 + (dx * dx + dy * dy) / spread[h])
                 acc += _misfit2(cp[k, v], cq[k, v], cos[h], sin[h], t[h, 0], t[h, 1]) / var
-            inliers[h, k] = acc <= gate
+            inliers[m] = acc <= gate
+            m += 1
     return inliers
 
 
 @dataclass(frozen=True)
 class _Pool:
-    """One map pair's candidate triangle pairs and the pool its hypotheses are counted on (``_consensus``)."""
+    """Candidate triangle pairs of one or more map pairs and the pools their hypotheses are counted on.
+
+    ``pool`` lists the candidates (positions into vp, vq), each map pair's
+    best first; map pair b's are ``pool[first[b]:first[b] + size[b]]``, and
+    cp, cq hold their triangles' coordinates in pool order.
+    """
 
     vp: np.ndarray  # (C, 3) vertices of the candidates' p triangles, paired with vq's
     vq: np.ndarray
-    P: np.ndarray
+    P: np.ndarray  # (B, n_p, 2)
     Q: np.ndarray
     scores: np.ndarray  # (C,) log Λ
-    sigma: float
-    pool: np.ndarray  # candidate indices, best first
+    sigma: np.ndarray  # (B,)
+    pool: np.ndarray
+    first: np.ndarray
+    size: np.ndarray
+    cp: np.ndarray
+    cq: np.ndarray
+
+    @classmethod
+    def of(cls, vp, vq, P, Q, scores, sigma, trial, pool=None) -> "_Pool":
+        """The pools of candidates grouped by map pair (``trial``, ascending), by default every candidate,
+        best first."""
+        B, n_p, n_q = len(P), P.shape[1], Q.shape[1]
+        pool = np.lexsort((-scores, trial)) if pool is None else pool
+        first = np.searchsorted(trial[pool], np.arange(B + 1))
+        # np.take, not fancy indexing: several times faster than P[vp] at 10^7 rows.
+        cp = np.take(P.reshape(-1, 2), vp[pool] + (trial[pool] * n_p)[:, None], axis=0)
+        cq = np.take(Q.reshape(-1, 2), vq[pool] + (trial[pool] * n_q)[:, None], axis=0)
+        return cls(vp, vq, P, Q, scores, sigma, pool, first[:-1], np.diff(first), cp, cq)
+
+    def two_var(self, pair) -> np.ndarray:
+        """2σ² of map pairs ``pair``, from σ as a Python float (the bits of the gates)."""
+        return np.array([2 * float(s)**2 for s in self.sigma])[pair]
 
 
-def _consensus(vp, vq, P, Q, scores, sigma):
-    """Index set of the largest transform-consistent group of candidate pairs.
+def _hypotheses(cand: _Pool):
+    """Each map pair's ``MAX_HYPOTHESES`` best candidates as 3-point hypotheses, and their inliers.
 
-    Every candidate's own 3-point transform is a hypothesis; its inliers are
-    gated with the hypothesis's uncertainty (loose for small triangles). The
-    ``REFINE`` best hypotheses are then refitted on their inliers' landmarks
-    and recounted with the refit's much smaller uncertainty, which is what
-    separates the true group from loose chance groups.
+    Returns the hypotheses' pool rows, their map pairs and their inliers:
+    hypothesis h's among its map pair's pool are the flags
+    ``inliers[block[h]:block[h] + size[pair[h]]]``.
     """
-    cp, cq = np.take(P, vp, axis=0), np.take(Q, vq, axis=0)  # several times faster than P[vp] at 10^7 rows
-    gate = GATE_6
-    # Hypotheses are counted on a pool only: large maps have far more
-    # candidates than any transform needs, and the landmark association that
-    # follows brings every landmark back in.
-    large = len(scores) > MAX_POOL
-    pool = _hough_pool(cp, cq, scores, sigma) if large else np.argsort(-scores, kind="stable")
-    hyp = pool[:MAX_HYPOTHESES]
-    theta, t, _ = paired_transforms(cp[hyp], cq[hyp])
-    centre = centroids(cp[hyp])
-    spread = np.sum((cp[hyp] - centre[:, None]) ** 2, axis=(1, 2))  # Σ‖p̃‖²
-    pooled = cp[pool]
-    inliers = _hypothesis_inliers(pooled, cq[pool], np.cos(theta), np.sin(theta), t, centre, spread, 2 * sigma**2,
-                                  gate)
-    count = inliers.sum(axis=1)
-    # Sorted by count: the hypotheses from the first one short of MIN_CONSENSUS on have fewer.
-    order = np.lexsort((-scores[hyp], -count))[:REFINE]
+    rank = np.arange(len(cand.pool)) - np.repeat(cand.first, cand.size)
+    hyp = np.flatnonzero(rank < MAX_HYPOTHESES)
+    pair = np.repeat(np.arange(len(cand.size)), np.minimum(cand.size, MAX_HYPOTHESES))
+    theta, t, _ = paired_transforms(cand.cp[hyp], cand.cq[hyp])
+    centre = centroids(cand.cp[hyp])
+    spread = np.sum((cand.cp[hyp] - centre[:, None]) ** 2, axis=(1, 2))  # Σ‖p̃‖²
+    inliers = _hypothesis_inliers(cand.cp, cand.cq, cand.first[pair], cand.size[pair], np.cos(theta),
+                                  np.sin(theta), t, centre, spread, cand.two_var(pair), GATE_6)
+    block = np.cumsum(cand.size[pair]) - cand.size[pair]
+    return hyp, pair, inliers, block
+
+
+def _consensus_groups(vp, vq, P, Q, scores, sigma, trial):
+    """Each map pair's largest transform-consistent group of candidate pairs, every map pair at once.
+
+    Every candidate's own 3-point transform is a hypothesis; its inliers
+    among its map pair's candidates are gated with the hypothesis's
+    uncertainty (loose for small triangles). The ``REFINE`` best hypotheses
+    of each map pair are then refitted on their inliers' landmarks and
+    recounted with the refit's much smaller uncertainty, which is what
+    separates the true group from loose chance groups. A map pair's group
+    is its largest refitted one, of highest total log Λ among equals, the
+    first among those.
+
+    Parameters
+    ----------
+    vp, vq : (C, 3) int ndarray
+        Candidate triangle pairs' vertices.
+    P, Q : (B, n_p, 2), (B, n_q, 2) ndarray
+    scores : (C,) ndarray
+    sigma : (B,) ndarray
+    trial : (C,) int ndarray
+        Map pair of each candidate, ascending; at most ``MAX_POOL`` a map pair.
+
+    Returns
+    -------
+    (C,) bool ndarray
+        The candidates of each map pair's group.
+    """
+    cand = _Pool.of(vp, vq, P, Q, scores, sigma, trial)
+    hyp, pair, inliers, block = _hypotheses(cand)
+    count = np.add.reduceat(inliers, block) if len(hyp) else np.empty(0, dtype=np.intp)
+    # Per map pair, most inliers first, then the best score; the first REFINE with at least MIN_CONSENSUS.
+    order = np.lexsort((-scores[cand.pool[hyp]], -count, pair))
+    in_pair = np.arange(len(order)) - np.searchsorted(pair[order], pair[order])
+    order = order[(in_pair < REFINE) & (count[order] >= MIN_CONSENSUS)]
+    # Each refitted hypothesis's inliers: (hypothesis, pool row).
+    size = cand.size[pair[order]]
+    h = np.repeat(np.arange(len(order)), size)
+    at = np.arange(h.size) - np.repeat(np.cumsum(size) - size, size)
+    inside = inliers[block[order][h] + at]
+    chosen = np.zeros(len(vp), dtype=bool)
+    chosen[_refit_groups(cand, pair[order], h[inside], cand.first[pair[order]][h[inside]] + at[inside])] = True
+    return chosen
+
+
+def _refit_groups(cand: _Pool, pair, h, row):
+    """Each map pair's best group after one refit of its hypotheses on their inliers' landmarks.
+
+    Hypothesis k (of map pair ``pair[k]``) has the inliers at pool rows
+    ``row[h == k]``. Their landmark correspondences are resolved per
+    hypothesis (landmark indices offset per hypothesis, so none competes
+    with another's) and fitted, and the hypothesis's map pair's pool is gated
+    under each fit; hypotheses with fewer than 3 correspondences are left
+    out. Returns the positions (into vp, vq) of each map pair's chosen group:
+    its largest, of highest total log Λ among equals, the first among those.
+    """
+    P, Q, pool, n_p, n_q = cand.P, cand.Q, cand.pool, cand.P.shape[1], cand.Q.shape[1]
+    members = pool[row]
+    uniq, keep, _ = resolve_correspondences(cand.vp[members] + n_p * h[:, None], cand.vq[members] + n_q * h[:, None],
+                                            cand.scores[members])
+    (kp, kq), owner = uniq[keep].T, uniq[keep, 0] // n_p  # owner: the hypothesis of each correspondence
+    xp = P.reshape(-1, 2)[pair[owner] * n_p + kp % n_p]
+    xq = Q.reshape(-1, 2)[pair[owner] * n_q + kq % n_q]
+    fitted = np.flatnonzero(np.bincount(owner, minlength=len(pair)) >= 3)
+    if fitted.size == 0:
+        return np.empty(0, dtype=np.intp)
+    # Every fit's (θ, t) covariance and prediction variance at once (``Alignment.cov``, ``prediction_var``).
+    theta, t, _, cov = fit_alignments(owner, xp, xq, cand.sigma[pair], len(pair))
+    fpair = pair[fitted]
+    size = cand.size[fpair]
+    fit = np.repeat(np.arange(fitted.size), size)
+    rows = np.repeat(cand.first[fpair], size) + np.arange(fit.size) - np.repeat(np.cumsum(size) - size, size)
+    var = cand.two_var(fpair)[fit, None] + prediction_vars(cand.cp[rows], theta[fitted][fit], cov[fitted][fit])
+    inside = _gate_d2_kernel(cand.cp, cand.cq, cand.first[fpair], size, np.cos(theta[fitted]),
+                             np.sin(theta[fitted]), t[fitted], var) <= GATE_6
+    n_in = np.bincount(fit[inside], minlength=fitted.size)
+    largest = np.zeros(len(cand.size), dtype=np.intp)
+    np.maximum.at(largest, fpair, n_in)
+    tied = np.flatnonzero((n_in == largest[fpair]) & (n_in > 0))
+    n_tied = np.bincount(fpair[tied], minlength=len(cand.size))
+    win = np.zeros(fitted.size, dtype=bool)
+    win[tied[n_tied[fpair[tied]] == 1]] = True
+    # Equally large groups: the highest total log Λ, the first among equals (summed as numpy sums one group).
+    start = np.cumsum(size) - size
+    contest = {}
+    for f in tied[n_tied[fpair[tied]] > 1]:
+        sl = slice(start[f], start[f] + size[f])
+        total = float(cand.scores[pool[rows[sl][inside[sl]]]].sum())
+        if fpair[f] not in contest or total > contest[fpair[f]][0]:
+            contest[fpair[f]] = (total, f)
+    win[[f for _, f in contest.values()]] = True
+    return pool[rows[win[fit] & inside]]
+
+
+def _grown_group(vp, vq, P, Q, scores, sigma):
+    """One large map pair's largest transform-consistent group of candidate pairs (more than ``MAX_POOL``).
+
+    The hypotheses are counted on the candidates of a Hough vote's densest
+    transform (``_hough_pool``): large maps have far more candidates than
+    any transform needs, and the landmark association that follows brings
+    every landmark back in. Each of the ``REFINE`` best hypotheses grows
+    its group ring by ring (``_grow``); the largest group wins, of highest
+    total log Λ among equals.
+    """
+    cp, cq = np.take(P, vp, axis=0), np.take(Q, vq, axis=0)
+    pool = _hough_pool(cp, cq, scores, sigma)
+    cand = _Pool.of(vp, vq, P[None], Q[None], scores, np.array([sigma]), np.zeros(len(vp), dtype=np.intp), pool)
+    hyp, _, inliers, block = _hypotheses(cand)
+    count = np.add.reduceat(inliers, block)
+    order = np.lexsort((-scores[pool[hyp]], -count))[:REFINE]
     order = order[count[order] >= MIN_CONSENSUS]
-    cand = _Pool(vp, vq, P, Q, scores, sigma, pool)
-    if large:
-        centres = centroids(pooled)
-        groups = (_grow(cand, centres, hyp[h], gate) for h in order)
-    else:
-        groups = _refit_groups(cand, inliers[order], gate)
+    centres = centroids(cand.cp)
     best, best_key = np.empty(0, dtype=np.intp), (0, 0.0)
-    for members in groups:
+    for h in order:
+        members = _grow(cand, centres, pool[hyp[h]], GATE_6)
         key = (members.size, float(scores[members].sum()))
         if key > best_key:
             best, best_key = members, key
     return best
-
-
-def _refit_groups(cand: _Pool, inliers, gate):
-    """Each hypothesis's group after one refit on its inliers' landmarks, all hypotheses at once.
-
-    ``inliers`` (H, pool) marks each hypothesis's members of ``cand.pool``. Their
-    landmark correspondences are resolved and fitted per hypothesis
-    (landmark indices offset per hypothesis, so none competes with another's),
-    and the pool is gated under each fit; hypotheses with fewer than 3
-    correspondences are left out. Returns the groups (pool members), in
-    the order of ``inliers``' rows.
-    """
-    if len(inliers) == 0:
-        return []
-    vp, vq, P, Q, scores, sigma, pool = cand.vp, cand.vq, cand.P, cand.Q, cand.scores, cand.sigma, cand.pool
-    n_p, n_q = len(P), len(Q)
-    h, at = np.nonzero(inliers)
-    members = pool[at]
-    uniq, keep, _ = resolve_correspondences(vp[members] + n_p * h[:, None], vq[members] + n_q * h[:, None],
-                                         scores[members])
-    (kp, kq), owner = uniq[keep].T, uniq[keep, 0] // n_p  # owner: the hypothesis of each correspondence
-    xp, xq = P[kp % n_p], Q[kq % n_q]
-    fitted = np.flatnonzero(np.bincount(owner, minlength=len(inliers)) >= 3)
-    if fitted.size == 0:
-        return []
-    # Every fit's (θ, t) covariance and prediction variance at once (``Alignment.cov``, ``prediction_var``).
-    theta, t, _, cov = fit_alignments(owner, xp, xq, sigma, len(inliers))
-    cov = cov[fitted]
-    cp, cq = P[vp[pool]], Q[vq[pool]]
-    var = 2 * sigma**2 + prediction_vars(cp[None], theta[fitted], cov)
-    inside = _gate_d2(cp, cq, theta[fitted], t[fitted], var) <= gate
-    return [pool[row] for row in inside]
 
 
 def _grow(cand: _Pool, centres, seed, gate):
@@ -225,17 +324,18 @@ def _grow(cand: _Pool, centres, seed, gate):
     (its gate must be loose there, and loose gates let chance pairs in), so
     pairs are admitted ring by ring, ``GROW_FACTOR`` times farther each
     round, each ring gated under the refit of everything admitted so far.
-    ``centres``: the centroid of each pool member's p triangle.
+    ``cand``: the pool of one map pair; ``centres``: the centroid of each pool member's p triangle.
     """
-    vp, vq, P, Q, scores, sigma, pool = cand.vp, cand.vq, cand.P, cand.Q, cand.scores, cand.sigma, cand.pool
+    vp, vq, scores, pool = cand.vp, cand.vq, cand.scores, cand.pool
+    P, Q, sigma = cand.P[0], cand.Q[0], float(cand.sigma[0])
     dist = np.linalg.norm(centres - P[vp[seed]].mean(axis=0), axis=1)
     side = np.sqrt(np.sum((P[vp[seed]] - P[vp[seed]].mean(axis=0)) ** 2) / 2)
     al = align_pairs(P[vp[seed]], Q[vq[seed]], sigma)
     radius, members = GROW_FACTOR * side, np.array([seed])
     while True:
-        var = 2 * sigma**2 + prediction_var(P[vp[pool]], al)
+        var = 2 * sigma**2 + prediction_var(cand.cp, al)
         within = dist <= radius
-        members = pool[within & (_gate_d2(P[vp[pool]], Q[vq[pool]], al.theta, al.t, var) <= gate)]
+        members = pool[within & (_gate_d2(cand.cp, cand.cq, al.theta, al.t, var) <= gate)]
         pairs, _ = correspondences(vp[members], vq[members], scores[members])
         if pairs.shape[0] >= 3:
             al = align_pairs(P[pairs[:, 0]], Q[pairs[:, 1]], sigma)
@@ -352,27 +452,34 @@ def match_nfa_batch(P, Q, theta, t, cov, trial, pairs, n_hypotheses, sigma, cov_
 
 def _triangle_correspondences(P, Q, sigma, match: TriangleMatch, log_tau):
     """Each map pair's landmark correspondences from its largest transform-consistent group of
-    candidate triangle pairs (``_consensus``), outliers rejected.
+    candidate triangle pairs, outliers rejected.
 
+    The candidates are the tentative pairs passing log τ; map pairs with
+    more than ``MAX_POOL`` of them (large maps) are grouped one at a time
+    (``_grown_group``), the others all at once (``_consensus_groups``).
     Returns (trial, pairs) of the correspondences, the conflicts of each map
     pair and its number of candidates (the hypotheses tried).
     """
     B = len(P)
     passing = np.flatnonzero(match.log_lr >= log_tau[match.trial])
-    bounds = np.searchsorted(match.trial[passing], np.arange(B + 1))
-    n_candidates, n_conflicts = np.diff(bounds), np.zeros(B, dtype=np.intp)
-    trials, found = [np.empty(0, dtype=np.intp)], [np.empty((0, 2), dtype=np.intp)]
-    for b in np.flatnonzero(n_candidates >= MIN_CONSENSUS):
-        cand = passing[bounds[b]:bounds[b + 1]]
-        vp, vq, scores = match.p_vertices[cand], match.q_vertices[cand], match.log_lr[cand]
-        group = _consensus(vp, vq, P[b], Q[b], scores, float(sigma[b]))
-        if group.size >= MIN_CONSENSUS:
-            pairs, n_conflicts[b] = correspondences(vp[group], vq[group], scores[group])
-            trials.append(np.full(len(pairs), b, dtype=np.intp))
-            found.append(pairs)
-    trial, pairs = np.concatenate(trials), np.concatenate(found).astype(np.intp)
-    keep = reject_outliers_batch(P, Q, trial, pairs, sigma, GATE_P)
-    return trial[keep], pairs[keep], n_conflicts, n_candidates
+    n_candidates = np.bincount(match.trial[passing], minlength=B)
+    passing = passing[n_candidates[match.trial[passing]] >= MIN_CONSENSUS]
+    trial, vp, vq = match.trial[passing], match.p_vertices[passing], match.q_vertices[passing]
+    scores = match.log_lr[passing]
+    large = n_candidates[trial] > MAX_POOL
+    chosen = np.zeros(len(passing), dtype=bool)
+    chosen[~large] = _consensus_groups(vp[~large], vq[~large], P, Q, scores[~large], sigma, trial[~large])
+    for b in np.unique(trial[large]):
+        cand = np.flatnonzero(trial == b)
+        chosen[cand[_grown_group(vp[cand], vq[cand], P[b], Q[b], scores[cand], float(sigma[b]))]] = True
+    chosen &= np.bincount(trial[chosen], minlength=B)[trial] >= MIN_CONSENSUS
+    # Landmark indices offset by map pair, so that one call resolves every pair's conflicts.
+    n = max(P.shape[1], Q.shape[1])
+    offset = trial[chosen][:, None] * n
+    uniq, keep, _ = resolve_correspondences(offset + vp[chosen], offset + vq[chosen], scores[chosen])
+    trial, pairs = uniq[keep, 0] // n, (uniq[keep] % n).astype(np.intp)
+    inlying = reject_outliers_batch(P, Q, trial, pairs, sigma, GATE_P)
+    return trial[inlying], pairs[inlying], np.bincount(uniq[~keep, 0] // n, minlength=B), n_candidates
 
 
 def _rows(cov, rows):

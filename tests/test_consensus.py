@@ -87,27 +87,23 @@ def test_association_at_10_db_pairs_about_as_many_landmarks_as_the_oracle():
     assert correct >= 0.97 * oracle_correct and wrong <= 1.1 * oracle_wrong
 
 
-def test_hypotheses_refitted_together_give_the_groups_refitted_one_at_a_time(monkeypatch):
+def test_map_pairs_grouped_together_give_each_pair_grouped_alone():
     from mapmerge import consensus
+    from mapmerge.merging import match_stage
 
-    refit, calls = consensus._refit_groups, []
-
-    def spy(*args):
-        groups = refit(*args)
-        calls.append((args, groups))
-        return groups
-
-    monkeypatch.setattr(consensus, "_refit_groups", spy)
-    for seed in range(3):
-        sc = mm.simulate.make_pair(100, 0.75, 12.5, rng=seed)
-        mm.merge_maps(sc.p, sc.q, sc.sigma)
-    assert max(len(args[-2]) for args, _ in calls) > 10  # many hypotheses refitted at once
-    for args, groups in calls:
-        *head, inliers, gate = args
-        # A hypothesis with fewer than 3 correspondences has no group, alone or together.
-        alone = [group for k in range(len(inliers)) for group in refit(*head, inliers[k:k + 1], gate)]
-        assert len(alone) == len(groups)
-        assert all(np.array_equal(a, b) for a, b in zip(alone, groups))
+    # 12.5-15 dB: many chance congruences among the candidates, several map pairs with groups, some without.
+    sc = mm.simulate.make_pairs(60, 0.75, 13.0, list(range(8)))
+    match = match_stage(sc.p, sc.q, sc.sigma, "consensus")
+    cand = match.log_lr >= mm.resolve_log_tau("chi2:0.01")
+    vp, vq, scores, trial = match.p_vertices[cand], match.q_vertices[cand], match.log_lr[cand], match.trial[cand]
+    together = consensus._consensus_groups(vp, vq, sc.p, sc.q, scores, sc.sigma, trial)
+    sizes = np.bincount(trial[together], minlength=len(sc))
+    assert (sizes >= 3).sum() >= 3 and (sizes < np.bincount(trial, minlength=len(sc))).all()
+    for b in range(len(sc)):
+        own = trial == b
+        alone = consensus._consensus_groups(vp[own], vq[own], sc.p[b:b + 1], sc.q[b:b + 1], scores[own],
+                                            sc.sigma[b:b + 1], np.zeros(own.sum(), dtype=np.intp))
+        assert np.array_equal(alone, together[own])
 
 
 def test_match_nfa_batch_is_each_map_pair_tested_alone():
