@@ -24,6 +24,7 @@ from scipy.spatial import ConvexHull, cKDTree
 from .alignment import mapped_covariance, paired_transforms, rotation
 from .assignment import candidate_components, component_blocks
 from .exhaustive import inside_hull
+from .triangles import TriangleBatch
 
 #: Log-likelihood margin under which two landmark assignments are
 #: indistinguishable (a likelihood ratio below 1,000): triangles on such
@@ -374,7 +375,7 @@ def associate_batch(P, Q, theta, t, cov, sigma, cov_p=None, cov_q=None, hulls=No
 
 
 def declared_triangles(vertices_p, vertices_q, pairs, P, Q, sigma):
-    """Triangle pairs whose three landmarks are all associated.
+    """Triangle pairs whose three landmarks are all associated (``declared_triangles_batch`` of one map pair).
 
     Parameters
     ----------
@@ -390,23 +391,67 @@ def declared_triangles(vertices_p, vertices_q, pairs, P, Q, sigma):
     log_lr : (D,) ndarray
         Their log Λ, the q vertices paired with p's Groth order.
     """
-    to_q = np.full(P.shape[0], -1, dtype=np.int64)
-    to_q[pairs[:, 0]] = pairs[:, 1]
-    mapped = to_q[vertices_p]  # (Tp, 3)
-    full = np.all(mapped >= 0, axis=1)
-    n_q = np.int64(Q.shape[0])
+    def one(vertices, X):
+        return TriangleBatch(X[None], np.asarray(vertices), np.zeros(len(vertices), dtype=np.intp),
+                             np.array([0, len(vertices)]))
 
-    def key(v):
+    _, tri_pairs, log_lr = declared_triangles_batch(one(vertices_p, P), one(vertices_q, Q),
+                                                    np.zeros(len(pairs), dtype=np.intp), pairs, np.array([sigma]))
+    return tri_pairs, log_lr
+
+
+#: ``declared_triangles_batch`` keys a q triangle by its map pair and sorted vertices in one int64.
+_KEY_LIMIT = 2**62
+
+
+def declared_triangles_batch(tri_p: TriangleBatch, tri_q: TriangleBatch, trial, pairs, sigma):
+    """Triangle pairs of B map pairs whose three landmarks are all associated.
+
+    Parameters
+    ----------
+    tri_p, tri_q : TriangleBatch
+        Groth-ordered triangles of the maps.
+    trial, pairs : (K,), (K, 2) int ndarray
+        Landmark associations (p index, q index) and their map pair.
+    sigma : (B,) ndarray
+
+    Returns
+    -------
+    tri_trial : (D,) int ndarray
+        Map pair of each triangle pair, ascending.
+    tri_pairs : (D, 2) int ndarray
+        (p triangle, q triangle) index pairs within their map pair, by p triangle.
+    log_lr : (D,) ndarray
+        Their log Λ, the q vertices paired with p's Groth order.
+    """
+    P, Q = tri_p.maps, tri_q.maps
+    B, n_p, n_q = len(P), P.shape[1], np.int64(Q.shape[1])
+    to_q = np.full(B * n_p, -1, dtype=np.int64)
+    to_q[trial * n_p + pairs[:, 0]] = pairs[:, 1]
+    mapped = to_q[tri_p.flat_vertices()]  # (Sp, 3)
+    # One key per q triangle: its map pair and sorted vertices (map pairs in groups whose keys fit an int64).
+    per_key = max(1, _KEY_LIMIT // int(n_q) ** 3)
+
+    def key(v, tr):
         v = np.sort(v, axis=1).astype(np.int64)
-        return (v[:, 0] * n_q + v[:, 1]) * n_q + v[:, 2]
+        return ((v[:, 0] * n_q + v[:, 1]) * n_q + v[:, 2]) + (tr % per_key) * n_q**3
 
-    kq = key(vertices_q)
-    order = np.argsort(kq)
-    tp_idx = np.flatnonzero(full)
-    kp = key(mapped[tp_idx])
-    pos = np.clip(np.searchsorted(kq, kp, sorter=order), 0, kq.size - 1)
-    hit = kq[order[pos]] == kp
-    tri_pairs = np.stack([tp_idx[hit], order[pos[hit]]], axis=1)
-    _, _, cost = paired_transforms(P[vertices_p[tri_pairs[:, 0]]], Q[mapped[tri_pairs[:, 0]]])
-    return tri_pairs, -cost / (2.0 * sigma**2)
-
+    hits = []
+    for a in range(0, B, per_key):
+        b = min(a + per_key, B)
+        qs = np.arange(tri_q.offsets[a], tri_q.offsets[b])
+        kq = key(tri_q.vertices[qs], tri_q.trial[qs])
+        order = np.argsort(kq)
+        ps = tri_p.offsets[a] + np.flatnonzero(np.all(mapped[tri_p.offsets[a]:tri_p.offsets[b]] >= 0, axis=1))
+        kp = key(mapped[ps], tri_p.trial[ps])
+        pos = np.clip(np.searchsorted(kq, kp, sorter=order), 0, kq.size - 1)
+        hit = kq[order[pos]] == kp
+        hits.append((ps[hit], qs[order[pos[hit]]]))
+    gp, gq = (np.concatenate(h) for h in zip(*hits))  # p and q triangles, as rows of tri_p and tri_q
+    tri_trial = tri_p.trial[gp]
+    _, _, cost = paired_transforms(P.reshape(-1, 2)[tri_trial[:, None] * n_p + tri_p.vertices[gp]],
+                                   Q.reshape(-1, 2)[tri_trial[:, None] * n_q + mapped[gp]])
+    # 2σ² from σ as a Python float, as the one-pair call computed it.
+    two_var = np.array([2.0 * float(s)**2 for s in sigma])
+    tri_pairs = np.stack([gp - tri_p.offsets[tri_trial], gq - tri_q.offsets[tri_trial]], axis=1)
+    return tri_trial, tri_pairs, -cost / two_var[tri_trial]

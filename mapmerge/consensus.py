@@ -24,7 +24,7 @@ between unrelated triangles do not. ``consensus_merge``:
    only if chance would rarely produce one as good (``match_nfa``, an a
    contrario test);
 4. declares every triangle pair whose three landmarks are associated and
-   not contested (``association.declared_triangles``), and fuses every
+   not contested (``association.declared_triangles_batch``), and fuses every
    association, so common landmarks appear once in the combined map.
 
 When the triangles give no significant match, ``consensus_merge`` runs its
@@ -43,12 +43,14 @@ from .alignment import (
     align_pairs, fit_alignments, paired_transforms, prediction_var, prediction_vars, reject_outliers_batch,
     rotation, transform_covariances, wrap_angle,
 )
-from .association import SHARED_PRIOR, associate_batch, declared_triangles, mapped_landmarks, own_covariances
+from .association import (
+    SHARED_PRIOR, associate_batch, declared_triangles_batch, mapped_landmarks, own_covariances,
+)
 from .exhaustive import Mixture, bump_height, inside_hull, pair_noise
 from .correspondence import correspondences, resolve_correspondences
 from .matching import TriangleMatch
 from .neighbours import njit
-from .result import MergeBatch, build_from_parts
+from .result import MergeBatch, build_batch
 from .triangles import centroids
 
 #: Tail probability of every χ² gate (a true pair / landmark is rejected
@@ -585,19 +587,18 @@ def consensus_merge(P, Q, sigma, match: TriangleMatch, log_tau, cov_p=None, cov_
             trial = trial[order]
             pairs = np.concatenate([pairs, more])[order]
             contested = np.concatenate([contested, more_contested])[order]
-    bounds = np.searchsorted(trial, np.arange(len(P) + 1))
-    match_bounds = np.searchsorted(match.trial, np.arange(len(P) + 1))
-    parts = []
-    for b in range(len(P)):
-        pairs_b, contested_b = pairs[bounds[b]:bounds[b + 1]], contested[bounds[b]:bounds[b + 1]]
-        tri_p, tri_q = match.tri_p[b].vertices, match.tri_q[b].vertices
-        sel = slice(match_bounds[b], match_bounds[b + 1])
-        lp_pairs, lp_scores = match.triangle_pairs[sel], match.log_lr[sel]
-        tri_pairs, tri_scores = declared_triangles(tri_p, tri_q, pairs_b[~contested_b], P[b], Q[b], float(sigma[b]))
-        rest = ~np.isin(lp_pairs @ [len(tri_q), 1], tri_pairs @ [len(tri_q), 1])
-        parts.append((np.concatenate([tri_pairs, lp_pairs[rest]]).astype(np.intp),
-                      np.concatenate([tri_scores, lp_scores[rest]]),
-                      np.r_[np.ones(len(tri_pairs), bool), np.zeros(int(rest.sum()), bool)],
-                      pairs_b, int(n_conflicts[b])))
-    return build_from_parts(method="consensus", P=P, Q=Q, sigma=sigma, log_tau=log_tau, tri_p=match.tri_p,
-                            tri_q=match.tri_q, parts=parts)
+    tri_p, tri_q = match.tri_p, match.tri_q
+    tri_trial, tri_pairs, tri_scores = declared_triangles_batch(tri_p, tri_q, trial[~contested], pairs[~contested],
+                                                                sigma)
+    # The LP's other tentative pairs follow undeclared, so that their labels still count as misses or true negatives.
+    def key(tr, tp):
+        return (tri_p.offsets[tr] + tp[:, 0]) * tri_q.offsets[-1] + tri_q.offsets[tr] + tp[:, 1]
+
+    rest = ~np.isin(key(match.trial, match.triangle_pairs), key(tri_trial, tri_pairs))
+    order = np.argsort(np.concatenate([tri_trial, match.trial[rest]]), kind="stable")
+    return build_batch(method="consensus", P=P, Q=Q, sigma=sigma, log_tau=log_tau, tri_p=tri_p, tri_q=tri_q,
+                       tri_trial=np.concatenate([tri_trial, match.trial[rest]])[order],
+                       triangle_pairs=np.concatenate([tri_pairs, match.triangle_pairs[rest]]).astype(np.intp)[order],
+                       triangle_log_lr=np.concatenate([tri_scores, match.log_lr[rest]])[order],
+                       declared=np.r_[np.ones(len(tri_pairs), bool), np.zeros(int(rest.sum()), bool)][order],
+                       pair_trial=trial, pairs=pairs, n_conflicts=n_conflicts)

@@ -61,10 +61,10 @@ import numpy as np
 from scipy.spatial import ConvexHull, cKDTree
 
 from .alignment import Alignment, fit_transforms
-from .association import associate_batch, declared_triangles
+from .association import associate_batch, declared_triangles_batch
 from .exhaustive import Mixture, bump_height, pair_noise
 from .neighbours import cell_grid, nearest_within, njit
-from .result import MergeBatch, build_from_parts
+from .result import MergeBatch, build_batch
 from .triangles import PARALLEL_MIN_LANDMARKS, TriangleBatch
 
 #: Hypotheses refined (the fullest translation windows, at distinct rotations).
@@ -418,12 +418,8 @@ def search_merge(P, Q, sigma, tri_p: TriangleBatch, tri_q: TriangleBatch, cov_p=
     declared, with their log Λ.
     """
     trial, pairs, contested, _ = search_batch(P, Q, sigma, cov_p, cov_q)
-    bounds = np.searchsorted(trial, np.arange(len(P) + 1))
-    parts = []
-    for b in range(len(P)):
-        pairs_b, contested_b = pairs[bounds[b]:bounds[b + 1]], contested[bounds[b]:bounds[b + 1]]
-        tri_pairs, scores = declared_triangles(tri_p[b].vertices, tri_q[b].vertices, pairs_b[~contested_b],
-                                               P[b], Q[b], float(sigma[b]))
-        parts.append((tri_pairs, scores, np.ones(len(tri_pairs), bool), pairs_b, 0))
-    return build_from_parts(method="search", P=P, Q=Q, sigma=sigma, log_tau=np.full(len(P), np.nan),
-                            tri_p=tri_p, tri_q=tri_q, parts=parts)
+    tri_trial, tri_pairs, scores = declared_triangles_batch(tri_p, tri_q, trial[~contested], pairs[~contested], sigma)
+    return build_batch(method="search", P=P, Q=Q, sigma=sigma, log_tau=np.full(len(P), np.nan), tri_p=tri_p,
+                       tri_q=tri_q, tri_trial=tri_trial, triangle_pairs=tri_pairs, triangle_log_lr=scores,
+                       declared=np.ones(len(tri_pairs), bool), pair_trial=trial, pairs=pairs,
+                       n_conflicts=np.zeros(len(P), dtype=np.int64))
