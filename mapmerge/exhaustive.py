@@ -239,6 +239,84 @@ class Mixture:
         return np.minimum(0.0, bound.min(axis=1))
 
 
+@dataclass(frozen=True)
+class Mixtures:
+    """Mixture models of several maps, their grids and hulls stacked for the compiled kernels: EM and Λ
+    of many transforms, each under its own model, in one call (the same bits as ``Mixture.em`` and
+    ``Mixture.log_lr`` one at a time)."""
+
+    models: tuple
+    arrays: tuple  # the kernels' per-model arguments (``_stacked``)
+
+    @classmethod
+    def of(cls, models) -> "Mixtures":
+        models = tuple(models)
+        grids = [m.grid for m in models]
+
+        def starts(parts):
+            return np.concatenate([[0], np.cumsum([len(a) for a in parts])]).astype(np.int64)
+
+        def per_model(values, dtype=float):
+            return np.array(values, dtype=dtype)
+
+        equations = [m.hull.equations for m in models]
+        arrays = (np.concatenate(equations), starts(equations),
+                  per_model([m.s for m in models]), per_model([m.c for m in models]),
+                  per_model([EXACT_RADIUS * m.s for m in models]),
+                  np.concatenate([g.points for g in grids]), np.concatenate([g.index for g in grids]),
+                  np.concatenate([g.keys for g in grids]), starts([g.points for g in grids]),
+                  per_model([g.origin[0] for g in grids]), per_model([g.origin[1] for g in grids]),
+                  per_model([g.h for g in grids]), per_model([g.nx for g in grids], np.int64),
+                  per_model([g.ny for g in grids], np.int64))
+        return cls(models, arrays)
+
+    def em(self, Q, model, theta, t) -> tuple[np.ndarray, np.ndarray]:
+        """``Mixture.em`` of transform k (θ (H,), t (H, 2)) under model ``model[k]`` against ``Q[model[k]]``
+        (Q (M, n_q, 2), one map per model): (θ (H,), t (H, 2))."""
+        theta, tx, ty = _em_batch(Q, np.asarray(model, dtype=np.int64), np.asarray(theta, dtype=float),
+                                  np.ascontiguousarray(t[:, 0], dtype=float),
+                                  np.ascontiguousarray(t[:, 1], dtype=float), EM_ROUNDS, *self.arrays)
+        return theta, np.stack([tx, ty], axis=1)
+
+    def log_lr(self, Q, model, theta, t) -> tuple[np.ndarray, np.ndarray]:
+        """``Mixture.log_lr`` of transform k under model ``model[k]`` against ``Q[model[k]]``: (Λ (H,), n_inside (H,))."""
+        model = np.asarray(model, dtype=np.int64)
+        g, n_inside = _log_terms_batch(Q, model, np.asarray(theta, dtype=float),
+                                       np.ascontiguousarray(t[:, 0], dtype=float),
+                                       np.ascontiguousarray(t[:, 1], dtype=float), *self.arrays)
+        # log(1 - π) as the one-model call computes it (numpy's scalar log).
+        log_miss = np.array([np.log(1 - m.p_shared) for m in self.models])
+        return n_inside * log_miss[model] + g, n_inside
+
+
+@njit(cache=True)
+def _em_batch(Q, model, theta, tx, ty, rounds, equations, eq_start, s, c, radius, points, index, keys, g_start,
+              ox, oy, h, nx, ny):
+    """``_em_rounds`` of each transform under its model (``Mixtures.em``)."""
+    out_theta, out_tx, out_ty = np.empty(len(theta)), np.empty(len(theta)), np.empty(len(theta))
+    for a in range(len(theta)):
+        m = model[a]
+        lo, hi = g_start[m], g_start[m + 1]
+        out_theta[a], out_tx[a], out_ty[a] = _em_rounds(
+            Q[m], theta[a], tx[a], ty[a], equations[eq_start[m]:eq_start[m + 1]], s[m], c[m], radius[m], rounds,
+            points[lo:hi], index[lo:hi], keys[lo:hi], ox[m], oy[m], h[m], nx[m], ny[m])
+    return out_theta, out_tx, out_ty
+
+
+@njit(cache=True)
+def _log_terms_batch(Q, model, theta, tx, ty, equations, eq_start, s, c, radius, points, index, keys, g_start,
+                     ox, oy, h, nx, ny):
+    """``_mapped_log_terms`` of each transform under its model (``Mixtures.log_lr``)."""
+    g, n_inside = np.empty(len(theta)), np.empty(len(theta), dtype=np.int64)
+    for a in range(len(theta)):
+        m = model[a]
+        lo, hi = g_start[m], g_start[m + 1]
+        g[a], n_inside[a] = _mapped_log_terms(
+            Q[m], theta[a], tx[a], ty[a], equations[eq_start[m]:eq_start[m + 1]], s[m], c[m], radius[m],
+            points[lo:hi], index[lo:hi], keys[lo:hi], ox[m], oy[m], h[m], nx[m], ny[m])
+    return g, n_inside
+
+
 @functools.cache
 def _quadrature_constants() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """``null_log_tail``'s fixed arrays, computed once (numpy takes about 0.2 ms for them a call):

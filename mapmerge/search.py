@@ -56,13 +56,14 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import ConvexHull, cKDTree
 
 from .alignment import Alignment, fit_transforms
 from .association import associate_batch, declared_triangles_batch
-from .exhaustive import Mixture, bump_height, pair_noise
+from .exhaustive import Mixture, Mixtures, bump_height, pair_noise
 from .neighbours import cell_grid, nearest_within, njit
 from .result import MergeBatch, build_batch
 from .triangles import PARALLEL_MIN_LANDMARKS, TriangleBatch
@@ -124,37 +125,85 @@ def _thinned(X: np.ndarray, m: int) -> np.ndarray:
     return X[alive]
 
 
-def _hypotheses(Ps: np.ndarray, Qs: np.ndarray, r: float, hull):
-    """Coarse search: the fullest (θ, t) vote windows, the cell width, and the number of hypotheses at resolution r.
+def _starts(parts) -> np.ndarray:
+    """Offsets of ragged parts laid end to end: part k is rows ``start[k]:start[k + 1]``."""
+    return np.concatenate([[0], np.cumsum([len(x) for x in parts])]).astype(np.int64)
+
+
+@njit(cache=True)
+def _centres(X, start):
+    """Each part's centroid (numpy's ``mean(axis=0)``: its rows summed in order) and the largest squared
+    distance of its rows from it."""
+    K = len(start) - 1
+    centre, far = np.empty((K, 2)), np.zeros(K)
+    for k in range(K):
+        a, b = start[k], start[k + 1]
+        sx, sy = X[a, 0], X[a, 1]
+        for i in range(a + 1, b):
+            sx += X[i, 0]
+            sy += X[i, 1]
+        centre[k, 0], centre[k, 1] = sx / (b - a), sy / (b - a)
+        for i in range(a, b):
+            dx, dy = X[i, 0] - centre[k, 0], X[i, 1] - centre[k, 1]
+            far[k] = max(far[k], dx * dx + dy * dy)
+    return centre, far
+
+
+def _hypotheses(Ps, Qs, r: np.ndarray, area: np.ndarray):
+    """Coarse search of K map pairs (lists of maps Ps, Qs; ``area``: each P's hull area): the fullest (θ, t)
+    vote windows of each, its vote cell width, and its number of hypotheses at resolution r.
 
     The vote cells are ``r`` wide, or ``COARSE_SPACING`` landmark spacings
     when that is wider (low noise: a finer grid only costs time, the
     refinement finds the exact transform). The hypothesis count for the
     acceptance test is taken at resolution ``r`` whatever the grid.
-    ``hull``: Ps's convex hull.
+    Returns (pair, θ, t) of the hypotheses, (K,) cells and (K,) counts.
     """
-    reach = np.sqrt(np.max(np.sum((Ps - Ps.mean(axis=0)) ** 2, axis=1)))
-    spacing = np.sqrt(hull.volume / len(Ps))
+    p_start, q_start = _starts(Ps), _starts(Qs)
+    Xp, Xq = np.concatenate(Ps), np.concatenate(Qs)
+    pm, far_p = _centres(Xp, p_start)
+    qm, far_q = _centres(Xq, q_start)
+    reach = np.sqrt(far_p)
+    spacing = np.sqrt(area / np.diff(p_start))
     # Translations are voted relative to q's centroid minus rotated p's centroid.
-    pc, qc = Ps - Ps.mean(axis=0), Qs - Qs.mean(axis=0)
-    half = np.sqrt(np.max(np.sum(pc**2, axis=1))) + np.sqrt(np.max(np.sum(qc**2, axis=1)))
+    pc = Xp - np.repeat(pm, np.diff(p_start), axis=0)
+    qc = Xq - np.repeat(qm, np.diff(q_start), axis=0)
+    half = reach + np.sqrt(far_q)
     # At most MAX_VOTE_CELLS cells per axis (maps of very different extents): ``2 half / cell`` then stays
     # below MAX_VOTE_CELLS - 1 whatever its rounding.
-    cell = max(r, COARSE_SPACING * spacing, 2 * half / (MAX_VOTE_CELLS - 2))
-    n_theta = int(np.clip(np.ceil(2 * np.pi * reach / cell), 8, MAX_ROTATIONS))
-    thetas = 2 * np.pi * np.arange(n_theta) / n_theta
-    n_cells = int(np.ceil(2 * half / cell)) + 1
-    best_count, best_window = _vote_peaks(pc, qc, thetas, half, cell, n_cells)
-    wx, wy = np.divmod(best_window, n_cells - 1)
-    best_t = np.stack([(wx + 1) * cell - half, (wy + 1) * cell - half], axis=1)
-    order = np.argsort(-best_count, kind="stable")[:N_PEAKS]
-    theta = thetas[order]
+    cell = np.maximum(np.maximum(r, COARSE_SPACING * spacing), 2 * half / (MAX_VOTE_CELLS - 2))
+    n_theta = np.clip(np.ceil(2 * np.pi * reach / cell), 8, MAX_ROTATIONS).astype(np.int64)
+    t_start = np.concatenate([[0], np.cumsum(n_theta)])
+    of_theta = np.repeat(np.arange(len(Ps)), n_theta)
+    thetas = 2 * np.pi * (np.arange(t_start[-1]) - t_start[of_theta]) / n_theta[of_theta]
+    n_cells = np.ceil(2 * half / cell).astype(np.int64) + 1
+    best_count, best_window = _vote_peaks_batch(pc, p_start, qc, q_start, thetas, t_start, half, cell, n_cells)
+    wx, wy = np.divmod(best_window, (n_cells - 1)[of_theta])
+    cell_t, half_t = cell[of_theta], half[of_theta]
+    best_t = np.stack([(wx + 1) * cell_t - half_t, (wy + 1) * cell_t - half_t], axis=1)
+    # Each pair's N_PEAKS fullest rotations, the first of ties.
+    order = np.lexsort((-best_count, of_theta))
+    order = order[np.arange(order.size) - t_start[of_theta[order]] < N_PEAKS]
+    pair, theta = of_theta[order], thetas[order]
     # Back to the maps' own frames: q = R p + t with t = qc_mean + t_centred - R pc_mean.
-    (mx, my), c, s = Ps.mean(axis=0), np.cos(theta), np.sin(theta)
-    t = Qs.mean(axis=0) + best_t[order] - np.stack([c * mx - s * my, s * mx + c * my], axis=1)
+    (mx, my), c, s = pm[pair].T, np.cos(theta), np.sin(theta)
+    t = qm[pair] + best_t[order] - np.stack([c * mx - s * my, s * mx + c * my], axis=1)
     with np.errstate(over="ignore"):  # inf for maps 1e100 noise widths across: then no NFA is small
-        n_hypotheses = np.ceil(2 * np.pi * reach / r) * np.ceil(2 * half / r) ** 2
-    return theta, t, cell, float(n_hypotheses)
+        n_hypotheses = np.array([np.ceil(2 * np.pi * a / b) * np.ceil(2 * h / b) ** 2
+                                 for a, h, b in zip(reach, half, r)])
+    return pair, theta, t, cell, n_hypotheses
+
+
+@njit(cache=True)
+def _vote_peaks_batch(pc, p_start, qc, q_start, thetas, t_start, half, cell, n_cells):
+    """``_vote_peaks`` of each map pair k: landmarks ``pc[p_start[k]:p_start[k + 1]]`` and q's likewise,
+    rotations ``thetas[t_start[k]:t_start[k + 1]]``."""
+    count, window = np.empty(len(thetas), dtype=np.int64), np.empty(len(thetas), dtype=np.int64)
+    for k in range(len(half)):
+        a, b = t_start[k], t_start[k + 1]
+        count[a:b], window[a:b] = _vote_peaks(pc[p_start[k]:p_start[k + 1]], qc[q_start[k]:q_start[k + 1]],
+                                              thetas[a:b], half[k], cell[k], n_cells[k])
+    return count, window
 
 
 @njit(cache=True)
@@ -193,114 +242,159 @@ def _vote_peaks(pc, qc, thetas, half, cell, n_cells):
     return count, window
 
 
-def _refine(P, Q, thetas, ts, r, cell, sigma):
-    """Each hypothesis refined: nearest-neighbour pairs, refitted, the radius halved each round from the
-    coarse cell's to 2r; every hypothesis at once (one ragged fit per round).
+@dataclass(frozen=True)
+class _Fits:
+    """Refined hypotheses: each one's map pair, transform and J*, and the landmark pairs (h, i, j) it was
+    fitted on (hypothesis h, p index i and q index j within its maps)."""
 
-    Returns one alignment, or None, per hypothesis.
+    pair: np.ndarray
+    theta: np.ndarray
+    t: np.ndarray
+    cost: np.ndarray
+    h: np.ndarray
+    i: np.ndarray
+    j: np.ndarray
+
+    def alignment(self, k: int, P, Q, sigma: float) -> Alignment:
+        """Hypothesis k's ``Alignment`` (P, Q: the maps it was fitted on)."""
+        sel = self.h == k
+        return Alignment.from_fit(float(self.theta[k]), self.t[k], self.cost[k], P[self.i[sel]], Q[self.j[sel]],
+                                  sigma)
+
+
+def _refine(Ps, Qs, pair, theta, t, r: np.ndarray, cell: np.ndarray) -> _Fits:
+    """Each hypothesis refined: nearest-neighbour pairs, refitted, the radius halved each round from the
+    coarse cell's to 2r; every hypothesis of every map pair (lists of maps Ps, Qs) at once.
+
+    Hypotheses left with fewer than 3 pairs are dropped.
     """
-    grid = cell_grid(P, max(2 * r, 2 * cell))
-    live, theta, t = np.arange(len(thetas)), np.asarray(thetas, float), np.asarray(ts, float).reshape(-1, 2)
+    grids = [cell_grid(X, max(2 * a, 2 * b)) for X, a, b in zip(Ps, r, cell)]
+    p_start, q_start, g_start = _starts(Ps), _starts(Qs), _starts([g.points for g in grids])
+    Xp, Xq = np.concatenate(Ps), np.concatenate(Qs)
+    stacked = (np.concatenate([g.points for g in grids]), np.concatenate([g.index for g in grids]),
+               np.concatenate([g.keys for g in grids]), g_start, np.array([g.origin[0] for g in grids]),
+               np.array([g.origin[1] for g in grids]), np.array([g.h for g in grids]),
+               np.array([g.nx for g in grids], dtype=np.int64), np.array([g.ny for g in grids], dtype=np.int64))
+    theta, t = np.asarray(theta, float), np.asarray(t, float).reshape(-1, 2)
     for k in range(REFINE_ROUNDS):
-        bound = max(2 * r, 2 * cell / 2**k)
-        fitted, h, i, j = _nearest_pairs(Q, np.cos(-theta), np.sin(-theta), t, *grid.arrays(), bound, len(P))
-        live = live[fitted]
-        if not live.size:
-            return [None] * len(thetas)
-        theta, t, cost = fit_transforms(h, P[i], Q[j], len(live))
-    out = [None] * len(thetas)
-    for k, hyp in enumerate(live):
-        sel = h == k
-        out[hyp] = Alignment.from_fit(float(theta[k]), t[k], cost[k], P[i[sel]], Q[j[sel]], sigma)
-    return out
+        bound = np.array([max(2 * a, 2 * b / 2**k) for a, b in zip(r, cell)])
+        fitted, h, i, j = _nearest_pairs_batch(Xq, q_start, pair, np.cos(-theta), np.sin(-theta), t, *stacked,
+                                               bound, np.diff(p_start))
+        pair = pair[fitted]
+        theta, t, cost = fit_transforms(h, Xp[p_start[pair[h]] + i], Xq[q_start[pair[h]] + j], len(pair))
+    return _Fits(pair, theta, t, cost, h, i, j)
 
 
 @njit(cache=True)
-def _nearest_pairs(Q, cos, sin, t, points, index, keys, ox, oy, h, nx, ny, bound, n_p):
-    """One refine round's pairs: under each hypothesis (cos, sin of -θ, t), q landmark j mapped into p's frame,
-    ``R(-θ)(q_j - t)``, pairs with its nearest p landmark closer than ``bound``, and each p landmark keeps its
-    nearest q landmark (the first of ties).
+def _nearest_pairs_batch(Q, q_start, pair, cos, sin, t, points, index, keys, g_start, ox, oy, h, nx, ny, bound, n_p):
+    """``_nearest_pairs`` of hypotheses of many map pairs: hypothesis a of map pair ``pair[a]`` maps that
+    pair's q landmarks (rows ``q_start`` of Q) onto its p grid (rows ``g_start`` of the stacked grids).
 
     Returns which hypotheses have at least 3 pairs and their pairs (hypothesis renumbered over those, p
-    index, q index), by hypothesis, then p index.
+    index, q index within their maps), by hypothesis, then p index.
     """
-    n_h, n_q = len(cos), Q.shape[0]
+    n_h = len(cos)
     fitted = np.zeros(n_h, dtype=np.bool_)
-    size = n_h * min(n_p, n_q)
+    size = 0
+    for a in range(n_h):
+        size += min(n_p[pair[a]], q_start[pair[a] + 1] - q_start[pair[a]])
     out_h, out_i, out_j = np.empty(size, dtype=np.int64), np.empty(size, dtype=np.int64), np.empty(size, dtype=np.int64)
-    x = np.empty((n_q, 2))
-    best_j, best_d = np.empty(n_p, dtype=np.int64), np.empty(n_p)
+    best_j, best_d = np.empty(n_p.max(), dtype=np.int64), np.empty(n_p.max())
     m, n_fitted = 0, 0
     for a in range(n_h):
-        for q in range(n_q):
-            dx, dy = Q[q, 0] - t[a, 0], Q[q, 1] - t[a, 1]
-            x[q, 0], x[q, 1] = cos[a] * dx - sin[a] * dy, sin[a] * dx + cos[a] * dy
-        near, dist = nearest_within(x, points, index, keys, ox, oy, h, nx, ny, bound)
-        best_j[:] = -1
-        for q in range(n_q):
-            i = near[q]
-            if i >= 0 and (best_j[i] < 0 or dist[q] < best_d[i]):
-                best_j[i], best_d[i] = q, dist[q]
-        count = 0
-        for i in range(n_p):
-            count += best_j[i] >= 0
-        if count < 3:
-            continue
-        fitted[a] = True
-        for i in range(n_p):
-            if best_j[i] >= 0:
-                out_h[m], out_i[m], out_j[m] = n_fitted, i, best_j[i]
-                m += 1
-        n_fitted += 1
+        b = pair[a]
+        Qb = Q[q_start[b]:q_start[b + 1]]
+        lo, hi = g_start[b], g_start[b + 1]
+        fitted_a, m_a = _nearest_pairs(Qb, cos[a], sin[a], t[a], points[lo:hi], index[lo:hi], keys[lo:hi], ox[b],
+                                       oy[b], h[b], nx[b], ny[b], bound[b], n_p[b], best_j, best_d, n_fitted,
+                                       out_h[m:], out_i[m:], out_j[m:])
+        if fitted_a:
+            fitted[a] = True
+            n_fitted += 1
+            m += m_a
     return fitted, out_h[:m], out_i[:m], out_j[:m]
 
 
-def _log_nfa(Q, hypotheses, model: Mixture, n_hypotheses: float):
-    """log NFA of each hypothesis after EM, the a contrario mixture test (module docstring, step 4),
-    and the hypotheses moved to the EM's transforms."""
-    log_lr, n_inside, fitted, done = [], [], [], {}
-    for al in hypotheses:
-        # Hypotheses often refine to the very same transform, which EM would only repeat.
-        start = np.float64(al.theta).tobytes() + np.asarray(al.t, float).tobytes()
-        if start not in done:
-            theta, t = model.em(Q, al.theta, al.t)
-            done[start] = (theta, t, *model.log_lr(Q, theta, t))
-        theta, t, lr, n_in = done[start]
-        fitted.append(dataclasses.replace(al, theta=theta, t=t))
-        log_lr.append(lr)
-        n_inside.append(n_in)
-    return np.log(n_hypotheses) + model.null_log_tail(log_lr, n_inside), fitted
+@njit(cache=True)
+def _nearest_pairs(Q, cos, sin, t, points, index, keys, ox, oy, h, nx, ny, bound, n_p, best_j, best_d, label,
+                   out_h, out_i, out_j):
+    """One refine round's pairs of one hypothesis (cos, sin of -θ, t): q landmark j mapped into p's frame,
+    ``R(-θ)(q_j - t)``, pairs with its nearest p landmark closer than ``bound``, and each p landmark keeps its
+    nearest q landmark (the first of ties). With at least 3 pairs, they are written (``label``, p index,
+    q index, by p index) to the front of ``out_*``: returns (whether, how many)."""
+    n_q = Q.shape[0]
+    x = np.empty((n_q, 2))
+    for q in range(n_q):
+        dx, dy = Q[q, 0] - t[0], Q[q, 1] - t[1]
+        x[q, 0], x[q, 1] = cos * dx - sin * dy, sin * dx + cos * dy
+    near, dist = nearest_within(x, points, index, keys, ox, oy, h, nx, ny, bound)
+    best_j[:n_p] = -1
+    for q in range(n_q):
+        i = near[q]
+        if i >= 0 and (best_j[i] < 0 or dist[q] < best_d[i]):
+            best_j[i], best_d[i] = q, dist[q]
+    count = 0
+    for i in range(n_p):
+        count += best_j[i] >= 0
+    if count < 3:
+        return False, 0
+    m = 0
+    for i in range(n_p):
+        if best_j[i] >= 0:
+            out_h[m], out_i[m], out_j[m] = label, i, np.int64(best_j[i])
+            m += 1
+    return True, m
 
 
-def _best_hypothesis(P, Q, sigma: float, cov_p, cov_q, hull):
-    """Steps 1-4 on one map pair: its best hypothesis when significant (else None) and its NFA
+def _best_hypotheses(P, Q, sigma, cov_p, cov_q, hulls):
+    """Steps 1-4 on B map pairs: each one's best hypothesis when significant (else None) and its NFA
     (inf when none could be refined, or the noise exceeds ``MAX_NOISE_SPACING`` landmark spacings).
-    ``hull``: P's convex hull."""
-    r = pair_noise(sigma, cov_p, cov_q)
-    if r > MAX_NOISE_SPACING * np.sqrt(hull.volume / len(P)):
-        return None, np.inf
-    Ps, Qs = _thinned(P, MAX_SEARCH_LANDMARKS), _thinned(Q, MAX_SEARCH_LANDMARKS)
-    thetas, ts, cell, n_hyp = _hypotheses(Ps, Qs, r, hull if Ps is P else ConvexHull(Ps))
-    refined = [al for al in _refine(Ps, Qs, thetas, ts, r, cell, sigma) if al is not None]
-    if refined and (len(Ps) < len(P) or len(Qs) < len(Q)):
+    ``hulls``: each P's convex hull."""
+    B = len(P)
+    best, nfa = [None] * B, np.full(B, np.inf)
+    r = np.array([pair_noise(float(sigma[b]), None if cov_p is None else cov_p[b],
+                             None if cov_q is None else cov_q[b]) for b in range(B)])
+    area = np.array([hull.volume for hull in hulls])
+    live = np.flatnonzero(~(r > MAX_NOISE_SPACING * np.sqrt(area / P.shape[1])))
+    if live.size == 0:
+        return best, nfa
+    # Larger maps vote and are first refined on about MAX_SEARCH_LANDMARKS landmarks each.
+    thin = max(P.shape[1], Q.shape[1]) > MAX_SEARCH_LANDMARKS
+    Ps = [_thinned(P[b], MAX_SEARCH_LANDMARKS) for b in live] if thin else list(P[live])
+    Qs = [_thinned(Q[b], MAX_SEARCH_LANDMARKS) for b in live] if thin else list(Q[live])
+    area_s = np.array([ConvexHull(X).volume for X in Ps]) if thin else area[live]
+    pair, theta, t, cell, n_hyp = _hypotheses(Ps, Qs, r[live], area_s)
+    fits = _refine(Ps, Qs, pair, theta, t, r[live], cell)
+    if thin:
         # Refined on the sparse subsets first (their spacing tolerates the coarse cell's error), then on the maps.
-        refined = [al for al in _refine(P, Q, [al.theta for al in refined], [al.t for al in refined], r, r, sigma)
-                   if al is not None]
-    if not refined:
-        return None, np.inf
-    model = Mixture.of_map(P, r, bump_height(len(P), hull.volume, r, MIXTURE_PRIOR), MIXTURE_PRIOR, hull)
-    log_nfa, refined = _log_nfa(Q, refined, model, n_hyp)
-    best = int(np.argmin(log_nfa))
-    nfa = float(np.exp(min(log_nfa[best], 700.0)))
-    return (None if log_nfa[best] > np.log(SEARCH_NFA) else refined[best]), nfa
+        fits = _refine(list(P[live]), list(Q[live]), fits.pair, fits.theta, fits.t, r[live], r[live])
+    if fits.pair.size == 0:
+        return best, nfa
+    # EM on the mixture model, then its a contrario test (module docstring, step 4).
+    models = Mixtures.of([Mixture.of_map(P[b], float(r[b]), bump_height(P.shape[1], hulls[b].volume, float(r[b]),
+                                                                        MIXTURE_PRIOR), MIXTURE_PRIOR, hulls[b])
+                          for b in live])
+    theta, t = models.em(Q[live], fits.pair, fits.theta, fits.t)
+    log_lr, n_inside = models.log_lr(Q[live], fits.pair, theta, t)
+    bounds = np.searchsorted(fits.pair, np.arange(live.size + 1))
+    for k in np.flatnonzero(np.diff(bounds)):
+        sel = slice(bounds[k], bounds[k + 1])
+        log_nfa = np.log(n_hyp[k]) + models.models[k].null_log_tail(log_lr[sel], n_inside[sel])
+        h = bounds[k] + int(np.argmin(log_nfa))
+        b = live[k]
+        nfa[b] = float(np.exp(min(log_nfa[h - bounds[k]], 700.0)))
+        if not log_nfa[h - bounds[k]] > np.log(SEARCH_NFA):
+            best[b] = dataclasses.replace(fits.alignment(h, P[b], Q[b], float(sigma[b])), theta=float(theta[h]),
+                                          t=t[h])
+    return best, nfa
 
 
 def search_batch(P, Q, sigma, cov_p=None, cov_q=None):
     """Landmark associations of B map pairs found by the global search.
 
-    Each pair's hypotheses are searched, refined and tested on their own
-    (steps 1-4); the significant ones are associated together, in one
-    ``association.associate_batch``.
+    Every pair's hypotheses are searched, refined and tested together
+    (steps 1-4, the compiled stages over all pairs at once); the significant
+    ones are associated in one ``association.associate_batch``.
 
     Parameters
     ----------
@@ -323,21 +417,16 @@ def search_batch(P, Q, sigma, cov_p=None, cov_q=None):
         spacings).
     """
     B = len(P)
-    nfa, found, hulls = np.empty(B), [], []
-    for b in range(B):
-        hull = ConvexHull(P[b])
-        best, nfa[b] = _best_hypothesis(P[b], Q[b], float(sigma[b]), None if cov_p is None else cov_p[b],
-                                        None if cov_q is None else cov_q[b], hull)
-        if best is not None:
-            found.append((b, best))
-            hulls.append((hull, ConvexHull(Q[b])))
-    if not found:
+    hulls = [ConvexHull(P[b]) for b in range(B)]
+    best, nfa = _best_hypotheses(P, Q, sigma, cov_p, cov_q, hulls)
+    rows = np.array([b for b, al in enumerate(best) if al is not None], dtype=np.intp)
+    if rows.size == 0:
         return np.empty(0, dtype=np.intp), np.empty((0, 2), dtype=np.intp), np.empty(0, dtype=bool), nfa
-    rows = np.array([b for b, _ in found])
     trial, pairs, contested = associate_batch(
-        P[rows], Q[rows], np.array([al.theta for _, al in found]), np.stack([al.t for _, al in found]),
-        np.stack([al.cov for _, al in found]), np.asarray(sigma, dtype=float)[rows],
-        None if cov_p is None else cov_p[rows], None if cov_q is None else cov_q[rows], hulls)
+        P[rows], Q[rows], np.array([best[b].theta for b in rows]), np.stack([best[b].t for b in rows]),
+        np.stack([best[b].cov for b in rows]), np.asarray(sigma, dtype=float)[rows],
+        None if cov_p is None else cov_p[rows], None if cov_q is None else cov_q[rows],
+        [(hulls[b], ConvexHull(Q[b])) for b in rows])
     trial = rows[trial]
     keep = np.bincount(trial, minlength=B)[trial] >= 3
     return trial[keep], pairs[keep], contested[keep], nfa

@@ -73,6 +73,26 @@ def test_null_log_tail_on_a_subsample_of_landmark_discs_matches_every_disc(monke
     assert np.all(full < -10) and np.allclose(sub, full, rtol=0.05)
 
 
+def test_mixtures_give_each_model_s_em_and_log_lr_bit_for_bit():
+    sc = mm.simulate.make_pairs(40, 0.75, 12.0, [1, 2, 3])
+    s = np.sqrt(2.0) * sc.sigma
+    models = [exhaustive.Mixture.of_map(p, float(r), exhaustive.bump_height(40, ConvexHull(p).volume, float(r), 0.5),
+                                        0.5) for p, r in zip(sc.p, s)]
+    model = np.array([0, 2, 1, 1, 0, 2])
+    rng = np.random.default_rng(0)
+    theta = sc.theta[model] + rng.normal(0, 0.02, 6)
+    t = sc.t[model] + rng.normal(0, 0.3, (6, 2))
+    t[4] += 50.0  # far off: EM stops at once
+    mixtures = exhaustive.Mixtures.of(models)
+    em_theta, em_t = mixtures.em(sc.q, model, theta, t)
+    log_lr, n_inside = mixtures.log_lr(sc.q, model, em_theta, em_t)
+    for k, m in enumerate(model):
+        alone = models[m].em(sc.q[m], theta[k], t[k])
+        assert em_theta[k] == alone[0] and np.array_equal(em_t[k], alone[1])
+        assert (log_lr[k], n_inside[k]) == models[m].log_lr(sc.q[m], em_theta[k], em_t[k])
+    assert n_inside[4] == 0 and np.all(n_inside[[0, 1, 2, 3, 5]] > 10)
+
+
 def test_limit_experiment_resumes_without_recomputing_finished_pairs(tmp_path, monkeypatch):
     from experiments import detector
 

@@ -126,26 +126,33 @@ def test_search_declines_where_the_noise_is_comparable_to_the_landmark_spacing()
         assert (nfa == np.inf) == declines and (len(pairs) == 0 or not declines)
 
 
-def test_hypotheses_refined_together_give_the_alignments_refined_one_at_a_time():
+def test_hypotheses_of_many_pairs_refined_together_give_each_refined_alone():
     # Coarse hypotheses at 10 dB: some refine to the transform, some to chance alignments, some die.
     from scipy.spatial import ConvexHull
 
-    checked = died = 0
-    for rng in range(6):
-        sc = mm.simulate.make_pair(60, 0.75, 10.0, rng=rng)
-        r = np.sqrt(2.0) * sc.sigma
-        thetas, ts, cell, _ = search._hypotheses(sc.p, sc.q, r, ConvexHull(sc.p))
-        thetas, ts = np.r_[thetas, thetas[0] + 2.0], np.r_[ts, ts[:1] + 1e6]  # one that pairs nothing
-        together = search._refine(sc.p, sc.q, thetas, ts, r, cell, sc.sigma)
-        for k, al in enumerate(together):
-            [alone] = search._refine(sc.p, sc.q, thetas[k:k + 1], ts[k:k + 1], r, cell, sc.sigma)
-            assert (al is None) == (alone is None)
-            died += al is None
-            if al is not None:
-                checked += 1
-                assert al.theta == alone.theta and np.array_equal(al.t, alone.t) and al.cost == alone.cost
-                assert np.array_equal(al.mu, alone.mu)
-    assert checked >= 20 and died >= 6
+    sc = mm.simulate.make_pairs(60, 0.75, 10.0, list(range(6)))
+    r = np.sqrt(2.0) * sc.sigma
+    area = np.array([ConvexHull(p).volume for p in sc.p])
+    pair, thetas, ts, cell, _ = search._hypotheses(list(sc.p), list(sc.q), r, area)
+    assert np.array_equal(np.unique(pair), np.arange(6))
+    # One more per map pair that pairs nothing.
+    first = np.searchsorted(pair, np.arange(6))
+    order = np.argsort(np.r_[pair, np.arange(6)], kind="stable")
+    pair, thetas = np.r_[pair, np.arange(6)][order], np.r_[thetas, thetas[first] + 2.0][order]
+    ts = np.r_[ts, ts[first] + 1e6][order]
+    together = search._refine(list(sc.p), list(sc.q), pair, thetas, ts, r, cell)
+    kept = 0
+    for k, b in enumerate(pair):
+        alone = search._refine([sc.p[b]], [sc.q[b]], np.array([0]), thetas[k:k + 1], ts[k:k + 1], r[b:b + 1],
+                               cell[b:b + 1])
+        if alone.pair.size:
+            assert together.pair[kept] == b
+            assert together.theta[kept] == alone.theta[0] and np.array_equal(together.t[kept], alone.t[0])
+            assert together.cost[kept] == alone.cost[0]
+            mine = together.h == kept
+            assert np.array_equal(together.i[mine], alone.i) and np.array_equal(together.j[mine], alone.j)
+            kept += 1
+    assert kept == together.pair.size and 20 <= kept <= len(pair) - 6
 
 
 @pytest.mark.parametrize("scale", [1e3, 1e9, 1e48, 1e-9])
