@@ -46,7 +46,7 @@ from .alignment import (
 from .association import (
     SHARED_PRIOR, associate_batch, declared_triangles_batch, mapped_landmarks, own_covariances,
 )
-from .exhaustive import Mixture, bump_height, inside_hull, pair_noise
+from .exhaustive import Mixture, Mixtures, bump_height, inside_hull, pair_noise
 from .correspondence import correspondences, resolve_correspondences
 from .matching import TriangleMatch
 from .neighbours import njit
@@ -514,11 +514,13 @@ def _associate_fitted(P, Q, sigma, trial, pairs, cov_p, cov_q, hulls, *, mixture
     if active.size == 0:
         return active, pairs, np.empty(0, dtype=bool)
     if mixture:
-        for a, b in enumerate(active):
+        models = []
+        for b in active:
             cp, cq = (None, None) if cov_p is None else (cov_p[b], cov_q[b])
             s, hull = pair_noise(float(sigma[b]), cp, cq), hulls[b][0]
-            model = Mixture.of_map(P[b], s, bump_height(P.shape[1], hull.volume, s, SHARED_PRIOR), SHARED_PRIOR, hull)
-            theta[a], t[a] = model.em(Q[b], theta[a], t[a])
+            models.append(Mixture.of_map(P[b], s, bump_height(P.shape[1], hull.volume, s, SHARED_PRIOR), SHARED_PRIOR,
+                                         hull))
+        theta, t = Mixtures.of(models).em(Q[active], np.arange(active.size), theta, t)
         cov = transform_covariances(local, mu, theta, sigma[active], np.ones(len(active), dtype=bool))
     tr, pairs, contested = associate_batch(P[active], Q[active], theta, t, cov, sigma[active], _rows(cov_p, active),
                                            _rows(cov_q, active), [hulls[b] for b in active], with_margin)
