@@ -514,12 +514,9 @@ def _associate_fitted(P, Q, sigma, trial, pairs, cov_p, cov_q, hulls, *, mixture
     if active.size == 0:
         return active, pairs, np.empty(0, dtype=bool)
     if mixture:
-        models = []
-        for b in active:
-            cp, cq = (None, None) if cov_p is None else (cov_p[b], cov_q[b])
-            s, hull = pair_noise(float(sigma[b]), cp, cq), hulls[b][0]
-            models.append(Mixture.of_map(P[b], s, bump_height(P.shape[1], hull.volume, s, SHARED_PRIOR), SHARED_PRIOR,
-                                         hull))
+        s = [pair_noise(float(sigma[b]), *((None, None) if cov_p is None else (cov_p[b], cov_q[b]))) for b in active]
+        c = [bump_height(P.shape[1], hulls[b][0].volume, s_b, SHARED_PRIOR) for b, s_b in zip(active, s)]
+        models = Mixture.of_maps(P[active], s, c, SHARED_PRIOR, [hulls[b][0] for b in active])
         theta, t = Mixtures.of(models).em(Q[active], np.arange(active.size), theta, t)
         cov = transform_covariances(local, mu, theta, sigma[active], np.ones(len(active), dtype=bool))
     tr, pairs, contested = associate_batch(P[active], Q[active], theta, t, cov, sigma[active], _rows(cov_p, active),

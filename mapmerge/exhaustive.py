@@ -44,7 +44,7 @@ from scipy.spatial import ConvexHull
 
 from ._validation import check_points, check_sigma
 from .alignment import rotate
-from .neighbours import CellGrid, cell_grid, njit, pairs_within
+from .neighbours import CellGrid, cell_grids, njit, pairs_within
 
 #: Translation cells, in units of s.
 GRID_STEP = 0.5
@@ -167,9 +167,14 @@ class Mixture:
     @classmethod
     def of_map(cls, P, s: float, c: float, p_shared: float, hull: ConvexHull | None = None) -> "Mixture":
         """The model of map P (valid input); ``hull``: P's convex hull, when the caller has it."""
-        hull = ConvexHull(P) if hull is None else hull
+        return cls.of_maps(P[None], [s], [c], p_shared, [ConvexHull(P) if hull is None else hull])[0]
+
+    @classmethod
+    def of_maps(cls, P, s, c, p_shared: float, hulls) -> list["Mixture"]:
+        """``of_map`` of B maps of one size at once: P (B, n, 2), s and c one per map, their hulls."""
         # Cells a hair wider than the radius: the quadrature's cover count reaches just beyond it.
-        return cls(P, hull, float(s), float(c), float(p_shared), cell_grid(P, EXACT_RADIUS * s * (1 + 1e-9)))
+        grids = cell_grids(P, [EXACT_RADIUS * s_b * (1 + 1e-9) for s_b in s])
+        return [cls(P[b], hulls[b], float(s[b]), float(c[b]), float(p_shared), grids[b]) for b in range(len(P))]
 
     def log_lr(self, Q, theta: float, t) -> tuple[float, int]:
         """Λ at one transform, with p's landmarks within ``EXACT_RADIUS`` s, and the number of

@@ -111,14 +111,23 @@ class CellGrid:
 
 def cell_grid(P: np.ndarray, radius: float) -> CellGrid:
     """Sort P (n, 2) on a grid whose cells are at least ``radius`` wide (valid, finite input)."""
-    origin = P.min(axis=0)
-    extent = float(np.max(P.max(axis=0) - origin))
-    h = max(float(radius), extent / (MAX_CELLS_PER_AXIS - 1), np.finfo(float).tiny)
-    cells = np.floor((P - origin) / h).astype(np.int64)
-    nx, ny = (int(v) + 1 for v in cells.max(axis=0))
-    keys = cells[:, 0] * ny + cells[:, 1]
-    order = np.argsort(keys, kind="stable")
-    return CellGrid(P[order], order.astype(np.int64), keys[order], origin, h, nx, ny)
+    return cell_grids(P[None], [radius])[0]
+
+
+def cell_grids(X: np.ndarray, radius) -> list[CellGrid]:
+    """``cell_grid`` of B maps of one size at once: X (B, n, 2), one radius per map."""
+    origin = X.min(axis=1)
+    extent = np.max(X.max(axis=1) - origin, axis=1)
+    h = np.maximum(np.maximum(np.asarray(radius, dtype=float), extent / (MAX_CELLS_PER_AXIS - 1)),
+                   np.finfo(float).tiny)
+    cells = np.floor((X - origin[:, None]) / h[:, None, None]).astype(np.int64)
+    n_cells = cells.max(axis=1) + 1
+    keys = cells[..., 0] * n_cells[:, 1:] + cells[..., 1]
+    order = np.argsort(keys, axis=1, kind="stable")
+    points = np.take_along_axis(X, order[..., None], axis=1)
+    keys = np.take_along_axis(keys, order, axis=1)
+    return [CellGrid(points[b], order[b], keys[b], origin[b], float(h[b]), int(n_cells[b, 0]), int(n_cells[b, 1]))
+            for b in range(len(X))]
 
 
 @njit(cache=True)

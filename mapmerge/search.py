@@ -64,7 +64,7 @@ from scipy.spatial import ConvexHull, cKDTree
 from .alignment import Alignment, fit_transforms
 from .association import associate_batch, declared_triangles_batch
 from .exhaustive import Mixture, Mixtures, bump_height, pair_noise
-from .neighbours import cell_grid, nearest_within, njit
+from .neighbours import cell_grids, nearest_within, njit
 from .result import MergeBatch, build_batch
 from .triangles import PARALLEL_MIN_LANDMARKS, TriangleBatch
 
@@ -268,7 +268,9 @@ def _refine(Ps, Qs, pair, theta, t, r: np.ndarray, cell: np.ndarray) -> _Fits:
 
     Hypotheses left with fewer than 3 pairs are dropped.
     """
-    grids = [cell_grid(X, max(2 * a, 2 * b)) for X, a, b in zip(Ps, r, cell)]
+    radius = [max(2 * a, 2 * b) for a, b in zip(r, cell)]
+    grids = (cell_grids(np.stack(Ps), radius) if len({len(X) for X in Ps}) == 1 else
+             [grid for X, a in zip(Ps, radius) for grid in cell_grids(X[None], [a])])
     p_start, q_start, g_start = _starts(Ps), _starts(Qs), _starts([g.points for g in grids])
     Xp, Xq = np.concatenate(Ps), np.concatenate(Qs)
     stacked = (np.concatenate([g.points for g in grids]), np.concatenate([g.index for g in grids]),
@@ -371,9 +373,10 @@ def _best_hypotheses(P, Q, sigma, cov_p, cov_q, hulls):
     if fits.pair.size == 0:
         return best, nfa
     # EM on the mixture model, then its a contrario test (module docstring, step 4).
-    models = Mixtures.of([Mixture.of_map(P[b], float(r[b]), bump_height(P.shape[1], hulls[b].volume, float(r[b]),
-                                                                        MIXTURE_PRIOR), MIXTURE_PRIOR, hulls[b])
-                          for b in live])
+    models = Mixtures.of(Mixture.of_maps(
+        P[live], [float(r[b]) for b in live],
+        [bump_height(P.shape[1], hulls[b].volume, float(r[b]), MIXTURE_PRIOR) for b in live], MIXTURE_PRIOR,
+        [hulls[b] for b in live]))
     theta, t = models.em(Q[live], fits.pair, fits.theta, fits.t)
     log_lr, n_inside = models.log_lr(Q[live], fits.pair, theta, t)
     bounds = np.searchsorted(fits.pair, np.arange(live.size + 1))
