@@ -30,6 +30,17 @@ def test_grid_counts_and_nearest_neighbours_are_the_k_d_trees(rng, scale):
         np.testing.assert_array_equal(near[found], np.argmin(d, axis=1)[found])
 
 
+def test_grids_of_a_batch_of_maps_are_each_map_s_own(rng):
+    X = rng.uniform(-1, 1, (6, 40, 2)) * 10.0 ** rng.uniform(-3, 3, (6, 1, 1))
+    radius = rng.uniform(0.01, 0.5, 6) * np.abs(X).max(axis=(1, 2))
+    for together, (P, r) in zip(neighbours.cell_grids(X, radius), zip(X, radius)):
+        alone = neighbours.cell_grids(P[None], [r])[0]
+        assert (together.h, together.nx, together.ny) == (alone.h, alone.nx, alone.ny) and together.nx * together.ny > 4
+        for a, b in zip(together.arrays()[:4], alone.arrays()[:4]):
+            np.testing.assert_array_equal(a, b)
+        assert np.all(np.diff(together.keys) >= 0) and np.array_equal(together.points, P[together.index])
+
+
 def test_grid_of_points_spread_over_any_extent_keeps_its_keys_in_range():
     P = np.array([[0.0, 0.0], [1e300, 1.0], [-1e300, 5.0]])
     grid = neighbours.cell_grid(P, 1e-12)
