@@ -176,7 +176,7 @@ def triangle_tests(search: bool):
         seen.update((p.tobytes(), (nfa[b], theta[b], t[b])) for b, p in enumerate(P))
         return nfa
 
-    def declined(P, Q, sigma, cov_p=None, cov_q=None):
+    def declined(P, Q, sigma, cov_p=None, cov_q=None, hulls=None):
         return (np.empty(0, dtype=np.intp), np.empty((0, 2), dtype=np.intp), np.empty(0, dtype=bool),
                 np.full(len(P), np.inf))
 

@@ -524,7 +524,7 @@ def _associate_fitted(P, Q, sigma, trial, pairs, cov_p, cov_q, hulls, *, mixture
     return active[tr], pairs, contested
 
 
-def _verified_pairs(P, Q, sigma, trial, pairs, n_hypotheses, cov_p, cov_q):
+def _verified_pairs(P, Q, sigma, trial, pairs, n_hypotheses, cov_p, cov_q, hulls_p, hulls_q):
     """Each map pair's associations from its triangle correspondences, kept only where significant.
 
     Associate under the correspondences' fit (``ASSOCIATION_ROUNDS`` times),
@@ -532,7 +532,7 @@ def _verified_pairs(P, Q, sigma, trial, pairs, n_hypotheses, cov_p, cov_q):
     pair's associations only if its ``match_nfa`` is at most ``MATCH_NFA``.
     Returns (trial, pairs, contested) of the accepted associations.
     """
-    hulls = {b: (ConvexHull(P[b]), ConvexHull(Q[b])) for b in np.flatnonzero(np.bincount(trial, minlength=len(P)) >= 3)}
+    hulls = {b: (hulls_p[b], hulls_q[b]) for b in np.flatnonzero(np.bincount(trial, minlength=len(P)) >= 3)}
     # These rounds' contested pairs are never returned: the mixture step associates again.
     for _ in range(ASSOCIATION_ROUNDS):
         trial, pairs, _ = _associate_fitted(P, Q, sigma, trial, pairs, cov_p, cov_q, hulls, mixture=False,
@@ -562,9 +562,10 @@ def consensus_merge(P, Q, sigma, match: TriangleMatch, log_tau, cov_p=None, cov_
     cov_p, cov_q : (B, n, 2, 2) ndarray, optional
         Per-landmark covariances.
     fallback : callable, optional
-        ``fallback(P, Q, sigma, cov_p, cov_q) -> (trial, pairs, contested, nfa)``
+        ``fallback(P, Q, sigma, cov_p, cov_q, hulls) -> (trial, pairs, contested, nfa)``
         for the map pairs whose triangles give no significant match, all at
-        once (``search.search_batch``: the global search).
+        once (``search.search_batch``: the global search; ``hulls``: their
+        maps' ``MapHulls``).
 
     Returns
     -------
@@ -575,12 +576,14 @@ def consensus_merge(P, Q, sigma, match: TriangleMatch, log_tau, cov_p=None, cov_
         misses or true negatives.
     """
     trial, pairs, n_conflicts, n_candidates = _triangle_correspondences(P, Q, sigma, match, log_tau)
-    trial, pairs, contested = _verified_pairs(P, Q, sigma, trial, pairs, n_candidates, cov_p, cov_q)
+    hulls_p, hulls_q = match.tri_p.hulls, match.tri_q.hulls
+    trial, pairs, contested = _verified_pairs(P, Q, sigma, trial, pairs, n_candidates, cov_p, cov_q, hulls_p, hulls_q)
     if fallback is not None:
         unmatched = np.flatnonzero(np.bincount(trial, minlength=len(P)) == 0)
         if unmatched.size:
             found, more, more_contested, _ = fallback(P[unmatched], Q[unmatched], sigma[unmatched],
-                                                      _rows(cov_p, unmatched), _rows(cov_q, unmatched))
+                                                      _rows(cov_p, unmatched), _rows(cov_q, unmatched),
+                                                      (hulls_p.take(unmatched), hulls_q.take(unmatched)))
             trial = np.concatenate([trial, unmatched[found]])
             order = np.argsort(trial, kind="stable")
             trial = trial[order]

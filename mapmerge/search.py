@@ -66,7 +66,7 @@ from .association import associate_batch, declared_triangles_batch
 from .exhaustive import Mixture, Mixtures, bump_height, pair_noise
 from .neighbours import cell_grids, nearest_within, njit
 from .result import MergeBatch, build_batch
-from .triangles import PARALLEL_MIN_LANDMARKS, TriangleBatch
+from .triangles import PARALLEL_MIN_LANDMARKS, MapHulls, TriangleBatch
 
 #: Hypotheses refined (the fullest translation windows, at distinct rotations).
 N_PEAKS = 8
@@ -392,7 +392,7 @@ def _best_hypotheses(P, Q, sigma, cov_p, cov_q, hulls):
     return best, nfa
 
 
-def search_batch(P, Q, sigma, cov_p=None, cov_q=None):
+def search_batch(P, Q, sigma, cov_p=None, cov_q=None, hulls=None):
     """Landmark associations of B map pairs found by the global search.
 
     Every pair's hypotheses are searched, refined and tested together
@@ -405,6 +405,8 @@ def search_batch(P, Q, sigma, cov_p=None, cov_q=None):
     sigma : (B,) ndarray
     cov_p, cov_q : (B, n, 2, 2) ndarray, optional
         Per-landmark covariances (the pair noise and the association use them).
+    hulls : (MapHulls, MapHulls), optional
+        The convex hulls of P and Q, when the caller keeps them.
 
     Returns
     -------
@@ -420,8 +422,8 @@ def search_batch(P, Q, sigma, cov_p=None, cov_q=None):
         spacings).
     """
     B = len(P)
-    hulls = [ConvexHull(P[b]) for b in range(B)]
-    best, nfa = _best_hypotheses(P, Q, sigma, cov_p, cov_q, hulls)
+    hulls_p, hulls_q = (MapHulls(P), MapHulls(Q)) if hulls is None else hulls
+    best, nfa = _best_hypotheses(P, Q, sigma, cov_p, cov_q, [hulls_p[b] for b in range(B)])
     rows = np.array([b for b, al in enumerate(best) if al is not None], dtype=np.intp)
     if rows.size == 0:
         return np.empty(0, dtype=np.intp), np.empty((0, 2), dtype=np.intp), np.empty(0, dtype=bool), nfa
@@ -429,7 +431,7 @@ def search_batch(P, Q, sigma, cov_p=None, cov_q=None):
         P[rows], Q[rows], np.array([best[b].theta for b in rows]), np.stack([best[b].t for b in rows]),
         np.stack([best[b].cov for b in rows]), np.asarray(sigma, dtype=float)[rows],
         None if cov_p is None else cov_p[rows], None if cov_q is None else cov_q[rows],
-        [(hulls[b], ConvexHull(Q[b])) for b in rows])
+        [(hulls_p[b], hulls_q[b]) for b in rows])
     trial = rows[trial]
     keep = np.bincount(trial, minlength=B)[trial] >= 3
     return trial[keep], pairs[keep], contested[keep], nfa
@@ -479,7 +481,7 @@ class SearchMemo:
     def __init__(self) -> None:
         self._answers: dict[bytes, tuple] = {}
 
-    def __call__(self, P, Q, sigma, cov_p=None, cov_q=None):
+    def __call__(self, P, Q, sigma, cov_p=None, cov_q=None, hulls=None):
         keys = [_digest(P[b], Q[b], np.float64(sigma[b]), None if cov_p is None else cov_p[b],
                         None if cov_q is None else cov_q[b]) for b in range(len(P))]
         first = {}  # each map pair not seen before, once
@@ -490,7 +492,9 @@ class SearchMemo:
         if new.size:
             trial, pairs, contested, nfa = search_batch(P[new], Q[new], np.asarray(sigma)[new],
                                                         None if cov_p is None else cov_p[new],
-                                                        None if cov_q is None else cov_q[new])
+                                                        None if cov_q is None else cov_q[new],
+                                                        None if hulls is None else (hulls[0].take(new),
+                                                                                    hulls[1].take(new)))
             bounds = np.searchsorted(trial, np.arange(new.size + 1))
             for k, b in enumerate(new):
                 sel = slice(bounds[k], bounds[k + 1])
@@ -509,7 +513,7 @@ def search_merge(P, Q, sigma, tri_p: TriangleBatch, tri_q: TriangleBatch, cov_p=
     three landmarks were associated (and not contested) are reported as
     declared, with their log Λ.
     """
-    trial, pairs, contested, _ = search_batch(P, Q, sigma, cov_p, cov_q)
+    trial, pairs, contested, _ = search_batch(P, Q, sigma, cov_p, cov_q, (tri_p.hulls, tri_q.hulls))
     tri_trial, tri_pairs, scores = declared_triangles_batch(tri_p, tri_q, trial[~contested], pairs[~contested], sigma)
     return build_batch(method="search", P=P, Q=Q, sigma=sigma, log_tau=np.full(len(P), np.nan), tri_p=tri_p,
                        tri_q=tri_q, tri_trial=tri_trial, triangle_pairs=tri_pairs, triangle_log_lr=scores,

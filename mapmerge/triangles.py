@@ -19,10 +19,10 @@ from __future__ import annotations
 
 import functools
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial import Delaunay
+from scipy.spatial import ConvexHull, Delaunay
 
 from ._validation import check_points
 
@@ -59,6 +59,30 @@ class Triangles:
         return self.vertices.shape[0]
 
 
+class MapHulls:
+    """The convex hulls (Qhull) of a batch of maps, each computed on first use and kept: the stages that
+    need a map's hull (its density, inside tests) share one, also across merges of the same maps at other
+    thresholds (``take`` gives a view that shares them)."""
+
+    def __init__(self, maps: np.ndarray) -> None:
+        self._maps, self._rows, self._known = maps, np.arange(len(maps)), {}
+
+    def __len__(self) -> int:
+        return len(self._rows)
+
+    def __getitem__(self, b) -> ConvexHull:
+        row = int(self._rows[b])
+        if row not in self._known:
+            self._known[row] = ConvexHull(self._maps[row])
+        return self._known[row]
+
+    def take(self, maps) -> "MapHulls":
+        """The hulls of maps ``maps`` (indices), renumbered 0..len(maps)-1, shared with this batch."""
+        view = MapHulls.__new__(MapHulls)
+        view._maps, view._rows, view._known = self._maps, self._rows[maps], self._known
+        return view
+
+
 @dataclass(frozen=True)
 class TriangleBatch:
     """Triangles of B maps as one ragged array.
@@ -73,12 +97,19 @@ class TriangleBatch:
         Map of each triangle; triangles of one map are contiguous.
     offsets : (B + 1,) int ndarray
         Map b's triangles are rows ``offsets[b]:offsets[b + 1]``.
+    hulls : MapHulls
+        The maps' convex hulls, computed on first use.
     """
 
     maps: np.ndarray
     vertices: np.ndarray
     trial: np.ndarray
     offsets: np.ndarray
+    hulls: MapHulls = field(default=None, compare=False, repr=False)
+
+    def __post_init__(self) -> None:
+        if self.hulls is None:
+            object.__setattr__(self, "hulls", MapHulls(self.maps))
 
     def __len__(self) -> int:
         return self.offsets.size - 1
@@ -119,7 +150,8 @@ class TriangleBatch:
         count = self.count[maps]
         rows = np.repeat(self.offsets[maps] - np.r_[0, np.cumsum(count)[:-1]], count) + np.arange(count.sum())
         return TriangleBatch(maps=self.maps[maps], vertices=self.vertices[rows],
-                             trial=np.repeat(np.arange(len(maps)), count), offsets=np.r_[0, np.cumsum(count)])
+                             trial=np.repeat(np.arange(len(maps)), count), offsets=np.r_[0, np.cumsum(count)],
+                             hulls=self.hulls.take(maps))
 
     def __getitem__(self, b: int) -> Triangles:
         vertices = self.vertices[self.offsets[b]:self.offsets[b + 1]]

@@ -312,7 +312,7 @@ def test_merge_at_is_one_call_of_the_methods_own_merge_and_consensus_falls_back_
     match = match_stage(sc.p, sc.q, sc.sigma, "consensus", log_tau=-4.0)
     seen = []
 
-    def memo(P, Q, sigma, cov_p=None, cov_q=None):
+    def memo(P, Q, sigma, cov_p=None, cov_q=None, hulls=None):
         seen.append(sigma)
         return np.empty(0, np.intp), np.empty((0, 2), np.intp), np.empty(0, bool), np.ones(len(P))
 

@@ -64,3 +64,18 @@ def test_large_maps_triangulated_in_threads_give_the_same_triangles(monkeypatch,
     for a, b in zip(serial, threaded):
         np.testing.assert_array_equal(a.vertices, b.vertices)
         np.testing.assert_array_equal(a.offsets, b.offsets)
+
+
+def test_map_hulls_are_computed_once_and_shared_by_their_views(monkeypatch):
+    from mapmerge import triangles
+
+    maps = mm.simulate.make_pairs(12, 0.75, 30.0, [1, 2, 3, 4]).p
+    made = []
+    real = triangles.ConvexHull
+    monkeypatch.setattr(triangles, "ConvexHull", lambda X: made.append(1) or real(X))
+    hulls = triangles.MapHulls(maps)
+    view = hulls.take(np.array([3, 1]))
+    assert len(view) == 2 and view[0].volume == real(maps[3]).volume
+    assert hulls[3] is view[0] and view.take(np.array([1]))[0] is hulls[1] and len(made) == 2
+    np.testing.assert_array_equal(hulls[2].equations, real(maps[2]).equations)
+    assert len(made) == 3
