@@ -76,7 +76,6 @@ import itertools
 import json
 import time
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
@@ -223,26 +222,33 @@ def pair_statistic(n: int, layout: str, snr: float, seed: int, unrelated: bool) 
 
 
 @contextlib.contextmanager
-def _recorded_tests():
-    """Record consensus's two acceptance tests during ``merge_maps``.
+def recorded_tests(search: bool = True):
+    """Record consensus's two acceptance tests during ``merge_maps`` or ``merge_batch`` calls.
 
-    ``merge_maps`` returns the decision only; to see how far each stage was
+    The merges return their decisions only; to see how far each stage was
     from accepting, ``consensus.match_nfa_batch`` and the fallback
     ``search.search_batch`` (both looked up at call time) are wrapped for
-    the duration. Yields a dict: ``"triangles"``: (NFA, hypotheses, pairs,
-    alignment) of the last triangle test, ``"search"``: the search's NFA.
-    The merge is of one map pair, so each batch holds one.
+    the duration. Yields a dict from a map p's bytes to what its map pair's
+    tests gave: ``"triangles"``: (NFA, hypotheses, associations, θ, t) of
+    its last triangle test, ``"search"``: the search's NFA. Without
+    ``search`` the global search declines every pair, so that the triangle
+    test alone decides.
     """
     seen, match_nfa_batch, search_batch = {}, mm.consensus.match_nfa_batch, mm.search.search_batch
 
     def recorded_match_nfa_batch(P, Q, theta, t, cov, trial, pairs, n_hypotheses, *args, **kwargs):
         nfa = match_nfa_batch(P, Q, theta, t, cov, trial, pairs, n_hypotheses, *args, **kwargs)
-        seen["triangles"] = (nfa[0], n_hypotheses[0], len(pairs), SimpleNamespace(theta=theta[0], t=t[0]))
+        count = np.bincount(trial, minlength=len(P))
+        for b, p in enumerate(P):
+            seen.setdefault(p.tobytes(), {})["triangles"] = (nfa[b], n_hypotheses[b], int(count[b]), theta[b], t[b])
         return nfa
 
-    def recorded_search_batch(*args, **kwargs):
-        out = search_batch(*args, **kwargs)
-        seen["search"] = out[3][0]
+    def recorded_search_batch(P, *args, **kwargs):
+        declined = (np.empty(0, dtype=np.intp), np.empty((0, 2), dtype=np.intp), np.empty(0, dtype=bool),
+                    np.full(len(P), np.inf))
+        out = search_batch(P, *args, **kwargs) if search else declined
+        for b, p in enumerate(P):
+            seen.setdefault(p.tobytes(), {})["search"] = out[3][b]
         return out
 
     mm.consensus.match_nfa_batch, mm.search.search_batch = recorded_match_nfa_batch, recorded_search_batch
@@ -295,13 +301,14 @@ def consensus_outcome(n: int, layout: str, snr: float, seed: int, unrelated: boo
     measured even where the triangles accepted (it does not run then).
     """
     sc = _pair(n, layout, snr, seed, unrelated)
-    with _recorded_tests() as seen:
+    with recorded_tests() as seen:
         err = mm.metrics.map_errors(sc, mm.merge_maps(sc.p, sc.q, sc.sigma))
+    tests = seen.get(sc.p.tobytes(), {})
     # inf, not NaN, for "no test made": pairs.csv drops NaN, so a NaN measure would be computed again on resume.
-    tri_nfa, tri_hyp, tri_pairs, al = seen.get("triangles", (np.inf, 0, 0, None))
-    tri_found = al is not None and not unrelated and mm.metrics.transform_found(sc, al.theta, al.t)
-    if unrelated and "search" in seen:
-        search_nfa, search_found = seen["search"], False
+    tri_nfa, tri_hyp, tri_pairs, theta, t = tests.get("triangles", (np.inf, 0, 0, None, None))
+    tri_found = theta is not None and not unrelated and mm.metrics.transform_found(sc, theta, t)
+    if unrelated and "search" in tests:
+        search_nfa, search_found = tests["search"], False
     else:
         search_nfa, search_found = _search_best(sc)
     log_h = np.log(search_hypotheses(sc.p, sc.q, sc.sigma))

@@ -164,31 +164,6 @@ def calibrated_table(n: int, snr: float, related: int, pairs: int, quantile: flo
             "false_merges": int(hold.merged.sum())}
 
 
-@contextlib.contextmanager
-def triangle_tests(search: bool):
-    """Record consensus's triangle test during ``merge_batch`` calls: yields a dict from a map p's bytes to
-    (NFA, θ, t) of its last test (absent: no consistent group of 3 associations). Without ``search`` the
-    global search declines every pair, so that only the triangle test can accept."""
-    seen, match_nfa_batch, search_batch = {}, mm.consensus.match_nfa_batch, mm.search.search_batch
-
-    def recorded(P, Q, theta, t, cov, trial, pairs, n_hypotheses, *args, **kwargs):
-        nfa = match_nfa_batch(P, Q, theta, t, cov, trial, pairs, n_hypotheses, *args, **kwargs)
-        seen.update((p.tobytes(), (nfa[b], theta[b], t[b])) for b, p in enumerate(P))
-        return nfa
-
-    def declined(P, Q, sigma, cov_p=None, cov_q=None, hulls=None):
-        return (np.empty(0, dtype=np.intp), np.empty((0, 2), dtype=np.intp), np.empty(0, dtype=bool),
-                np.full(len(P), np.inf))
-
-    mm.consensus.match_nfa_batch = recorded
-    if not search:
-        mm.search.search_batch = declined
-    try:
-        yield seen
-    finally:
-        mm.consensus.match_nfa_batch, mm.search.search_batch = match_nfa_batch, search_batch
-
-
 def acceptance_rows(n: int, layout: str, snr: float, seeds, unrelated: bool, search: bool) -> list[tuple]:
     """(seed, triangle log NFA (inf: no test), its transform found, merged) of consensus on the detector's pairs
     ``seeds``, in batches; without ``search`` the triangle test alone decides."""
@@ -196,10 +171,10 @@ def acceptance_rows(n: int, layout: str, snr: float, seeds, unrelated: bool, sea
     for start in range(0, len(seeds), BATCH):
         chunk = [int(s) for s in seeds[start:start + BATCH]]
         sc = mm.simulate.make_pairs(n, 0.75, snr, chunk, unrelated=unrelated, layout=layout)
-        with triangle_tests(search) as seen:
+        with detector.recorded_tests(search) as seen:
             merged = mm.merge_batch(sc.p, sc.q, sc.sigma).matched
         for b, seed in enumerate(chunk):
-            nfa, theta, t = seen.get(sc.p[b].tobytes(), (np.inf, None, None))
+            nfa, _, _, theta, t = seen.get(sc.p[b].tobytes(), {}).get("triangles", (np.inf, 0, 0, None, None))
             found = theta is not None and not unrelated and mm.metrics.transform_found(sc[b], theta, t)
             with np.errstate(divide="ignore"):
                 rows.append((seed, float(np.log(nfa)), bool(found), bool(merged[b])))

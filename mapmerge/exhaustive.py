@@ -284,7 +284,8 @@ class Mixtures:
         return theta, np.stack([tx, ty], axis=1)
 
     def log_lr(self, Q, model, theta, t) -> tuple[np.ndarray, np.ndarray]:
-        """``Mixture.log_lr`` of transform k under model ``model[k]`` against ``Q[model[k]]``: (Λ (H,), n_inside (H,))."""
+        """``Mixture.log_lr`` of transform k under model ``model[k]`` against ``Q[model[k]]``:
+        (Λ (H,), n_inside (H,))."""
         model = np.asarray(model, dtype=np.int64)
         g, n_inside = _log_terms_batch(Q, model, np.asarray(theta, dtype=float),
                                        np.ascontiguousarray(t[:, 0], dtype=float),
