@@ -101,12 +101,14 @@ def test_search_memo_answers_repeated_searches_once_and_bit_for_bit(monkeypatch)
     assert searched == [2, 1, 1]
 
 
-def test_search_batch_equals_each_pair_searched_alone():
-    sc = mm.simulate.make_pairs(30, 0.75, 15, list(range(20, 28)))
-    trial, pairs, contested, nfa = search.search_batch(sc.p, sc.q, sc.sigma)
+@pytest.mark.parametrize("anisotropy", [0.0, 0.5])
+def test_search_batch_equals_each_pair_searched_alone(anisotropy):
+    sc = mm.simulate.make_pairs(30, 0.75, 15, list(range(20, 28)), anisotropy=anisotropy)
+    cov = (sc.cov_p, sc.cov_q) if anisotropy else (None, None)
+    trial, pairs, contested, nfa = search.search_batch(sc.p, sc.q, sc.sigma, *cov)
     assert 0 < len(np.unique(trial)) < len(sc)  # some pairs found, some not
     for b in range(len(sc)):
-        alone = search.search_pairs(sc.p[b], sc.q[b], sc.sigma[b])
+        alone = search.search_pairs(sc.p[b], sc.q[b], sc.sigma[b], *(None if c is None else c[b] for c in cov))
         assert np.array_equal(pairs[trial == b], alone[0]) and np.array_equal(contested[trial == b], alone[1])
         assert nfa[b] == alone[2]
 
