@@ -377,8 +377,14 @@ def _best_hypotheses(P, Q, sigma, cov_p, cov_q, hulls):
         P[live], [float(r[b]) for b in live],
         [bump_height(P.shape[1], hulls[b].volume, float(r[b]), MIXTURE_PRIOR) for b in live], MIXTURE_PRIOR,
         [hulls[b] for b in live]))
-    theta, t = models.em(Q[live], fits.pair, fits.theta, fits.t)
-    log_lr, n_inside = models.log_lr(Q[live], fits.pair, theta, t)
+    # Hypotheses often refine to the very same transform, which EM would only repeat (on large maps a
+    # round costs tens of milliseconds): each distinct one is run once.
+    same = np.column_stack([fits.pair, fits.theta.view(np.int64), fits.t.view(np.int64)])
+    _, first, copy = np.unique(same, axis=0, return_index=True, return_inverse=True)
+    theta, t = models.em(Q[live], fits.pair[first], fits.theta[first], fits.t[first])
+    log_lr, n_inside = models.log_lr(Q[live], fits.pair[first], theta, t)
+    copy = copy.reshape(-1)  # one index a row whatever numpy release
+    theta, t, log_lr, n_inside = theta[copy], t[copy], log_lr[copy], n_inside[copy]
     bounds = np.searchsorted(fits.pair, np.arange(live.size + 1))
     for k in np.flatnonzero(np.diff(bounds)):
         sel = slice(bounds[k], bounds[k + 1])
