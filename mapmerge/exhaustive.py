@@ -44,7 +44,7 @@ from scipy.spatial import ConvexHull
 
 from ._validation import check_points, check_sigma
 from .alignment import rotate
-from .neighbours import CellGrid, cell_grids, njit, pairs_within
+from .neighbours import CellGrid, cell_grids, njit, pairs_within, ragged_starts, stacked_grids
 
 #: Translation cells, in units of s.
 GRID_STEP = 0.5
@@ -256,23 +256,10 @@ class Mixtures:
     @classmethod
     def of(cls, models) -> "Mixtures":
         models = tuple(models)
-        grids = [m.grid for m in models]
-
-        def starts(parts):
-            return np.concatenate([[0], np.cumsum([len(a) for a in parts])]).astype(np.int64)
-
-        def per_model(values, dtype=float):
-            return np.array(values, dtype=dtype)
-
         equations = [m.hull.equations for m in models]
-        arrays = (np.concatenate(equations), starts(equations),
-                  per_model([m.s for m in models]), per_model([m.c for m in models]),
-                  per_model([EXACT_RADIUS * m.s for m in models]),
-                  np.concatenate([g.points for g in grids]), np.concatenate([g.index for g in grids]),
-                  np.concatenate([g.keys for g in grids]), starts([g.points for g in grids]),
-                  per_model([g.origin[0] for g in grids]), per_model([g.origin[1] for g in grids]),
-                  per_model([g.h for g in grids]), per_model([g.nx for g in grids], np.int64),
-                  per_model([g.ny for g in grids], np.int64))
+        arrays = (np.concatenate(equations), ragged_starts(equations),
+                  np.array([m.s for m in models]), np.array([m.c for m in models]),
+                  np.array([EXACT_RADIUS * m.s for m in models]), *stacked_grids([m.grid for m in models]))
         return cls(models, arrays)
 
     def em(self, Q, model, theta, t) -> tuple[np.ndarray, np.ndarray]:

@@ -130,6 +130,21 @@ def cell_grids(X: np.ndarray, radius) -> list[CellGrid]:
             for b in range(len(X))]
 
 
+def ragged_starts(parts) -> np.ndarray:
+    """Offsets of arrays laid end to end: part k is rows ``start[k]:start[k + 1]``."""
+    return np.concatenate([[0], np.cumsum([len(x) for x in parts])]).astype(np.int64)
+
+
+def stacked_grids(grids) -> tuple:
+    """Grids laid end to end, for the kernels that visit many: (points, index, keys, start, ox, oy, h, nx,
+    ny), grid g's points being rows ``start[g]:start[g + 1]`` and its other values entry g."""
+    return (np.concatenate([g.points for g in grids]), np.concatenate([g.index for g in grids]),
+            np.concatenate([g.keys for g in grids]), ragged_starts([g.points for g in grids]),
+            np.array([g.origin[0] for g in grids]),
+            np.array([g.origin[1] for g in grids]), np.array([g.h for g in grids]),
+            np.array([g.nx for g in grids], dtype=np.int64), np.array([g.ny for g in grids], dtype=np.int64))
+
+
 @njit(cache=True)
 def column_span(x, y, keys, ox, oy, h, nx, ny, ix_off):
     """The range of sorted points in the three cells (ix + ix_off, iy - 1 .. iy + 1) around the cell

@@ -64,7 +64,7 @@ from scipy.spatial import ConvexHull, cKDTree
 from .alignment import Alignment, fit_transforms
 from .association import associate_batch, declared_triangles_batch
 from .exhaustive import Mixture, Mixtures, bump_height, pair_noise
-from .neighbours import cell_grids, nearest_within, njit
+from .neighbours import cell_grids, nearest_within, njit, ragged_starts, stacked_grids
 from .result import MergeBatch, build_batch
 from .triangles import PARALLEL_MIN_LANDMARKS, MapHulls, TriangleBatch
 
@@ -125,11 +125,6 @@ def _thinned(X: np.ndarray, m: int) -> np.ndarray:
     return X[alive]
 
 
-def _starts(parts) -> np.ndarray:
-    """Offsets of ragged parts laid end to end: part k is rows ``start[k]:start[k + 1]``."""
-    return np.concatenate([[0], np.cumsum([len(x) for x in parts])]).astype(np.int64)
-
-
 @njit(cache=True)
 def _centres(X, start):
     """Each part's centroid (numpy's ``mean(axis=0)``: its rows summed in order) and the largest squared
@@ -159,7 +154,7 @@ def _hypotheses(Ps, Qs, r: np.ndarray, area: np.ndarray):
     acceptance test is taken at resolution ``r`` whatever the grid.
     Returns (pair, θ, t) of the hypotheses, (K,) cells and (K,) counts.
     """
-    p_start, q_start = _starts(Ps), _starts(Qs)
+    p_start, q_start = ragged_starts(Ps), ragged_starts(Qs)
     Xp, Xq = np.concatenate(Ps), np.concatenate(Qs)
     pm, far_p = _centres(Xp, p_start)
     qm, far_q = _centres(Xq, q_start)
@@ -271,12 +266,8 @@ def _refine(Ps, Qs, pair, theta, t, r: np.ndarray, cell: np.ndarray) -> _Fits:
     radius = [max(2 * a, 2 * b) for a, b in zip(r, cell)]
     grids = (cell_grids(np.stack(Ps), radius) if len({len(X) for X in Ps}) == 1 else
              [grid for X, a in zip(Ps, radius) for grid in cell_grids(X[None], [a])])
-    p_start, q_start, g_start = _starts(Ps), _starts(Qs), _starts([g.points for g in grids])
+    p_start, q_start, stacked = ragged_starts(Ps), ragged_starts(Qs), stacked_grids(grids)
     Xp, Xq = np.concatenate(Ps), np.concatenate(Qs)
-    stacked = (np.concatenate([g.points for g in grids]), np.concatenate([g.index for g in grids]),
-               np.concatenate([g.keys for g in grids]), g_start, np.array([g.origin[0] for g in grids]),
-               np.array([g.origin[1] for g in grids]), np.array([g.h for g in grids]),
-               np.array([g.nx for g in grids], dtype=np.int64), np.array([g.ny for g in grids], dtype=np.int64))
     theta, t = np.asarray(theta, float), np.asarray(t, float).reshape(-1, 2)
     for k in range(REFINE_ROUNDS):
         bound = np.array([max(2 * a, 2 * b / 2**k) for a, b in zip(r, cell)])
