@@ -199,6 +199,12 @@ def _hypotheses(cand: _Pool):
     return hyp, pair, inliers, block
 
 
+def _rows_of_blocks(size):
+    """Rows of blocks of ``size`` rows laid end to end: each row's block and its place within the block."""
+    block = np.repeat(np.arange(len(size)), size)
+    return block, np.arange(block.size) - np.repeat(np.cumsum(size) - size, size)
+
+
 def _consensus_groups(vp, vq, P, Q, scores, sigma, trial):
     """Each map pair's largest transform-consistent group of candidate pairs, every map pair at once.
 
@@ -234,9 +240,7 @@ def _consensus_groups(vp, vq, P, Q, scores, sigma, trial):
     in_pair = np.arange(len(order)) - np.searchsorted(pair[order], pair[order])
     order = order[(in_pair < REFINE) & (count[order] >= MIN_CONSENSUS)]
     # Each refitted hypothesis's inliers: (hypothesis, pool row).
-    size = cand.size[pair[order]]
-    h = np.repeat(np.arange(len(order)), size)
-    at = np.arange(h.size) - np.repeat(np.cumsum(size) - size, size)
+    h, at = _rows_of_blocks(cand.size[pair[order]])
     inside = inliers[block[order][h] + at]
     chosen = np.zeros(len(vp), dtype=bool)
     chosen[_refit_groups(cand, pair[order], h[inside], cand.first[pair[order]][h[inside]] + at[inside])] = True
@@ -268,8 +272,8 @@ def _refit_groups(cand: _Pool, pair, h, row):
     theta, t, _, cov = fit_alignments(owner, xp, xq, cand.sigma[pair], len(pair))
     fpair = pair[fitted]
     size = cand.size[fpair]
-    fit = np.repeat(np.arange(fitted.size), size)
-    rows = np.repeat(cand.first[fpair], size) + np.arange(fit.size) - np.repeat(np.cumsum(size) - size, size)
+    fit, at = _rows_of_blocks(size)
+    rows = cand.first[fpair][fit] + at
     var = cand.two_var(fpair)[fit, None] + prediction_vars(cand.cp[rows], theta[fitted][fit], cov[fitted][fit])
     inside = _gate_d2_kernel(cand.cp, cand.cq, cand.first[fpair], size, np.cos(theta[fitted]),
                              np.sin(theta[fitted]), t[fitted], var) <= GATE_6
