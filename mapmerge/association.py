@@ -52,6 +52,17 @@ def own_covariances(cov, n: int, sigma) -> np.ndarray:
     return np.broadcast_to((sigma[..., None, None] ** 2 * np.eye(2))[..., None, :, :], sigma.shape + (n, 2, 2))
 
 
+def covariance_rows(cov, rows):
+    """The optional per-landmark covariances (B, n, 2, 2) of the map pairs ``rows`` (None stays None)."""
+    return None if cov is None else cov[rows]
+
+
+def pair_variances(sigma) -> np.ndarray:
+    """2σ² of each σ, computed on Python floats as the one-map-pair code did: Python's ``x**2`` (C's pow)
+    differs from numpy's ``x * x`` in the last bit of about one value in a thousand."""
+    return np.array([2.0 * float(s)**2 for s in sigma])
+
+
 def mapped_landmarks(Q, theta, t, cov, sigma, cov_q=None):
     """q's landmarks in p's frame, x = R(θ)ᵀ (q - t), and their covariances there.
 
@@ -451,7 +462,5 @@ def declared_triangles_batch(tri_p: TriangleBatch, tri_q: TriangleBatch, trial, 
     tri_trial = tri_p.trial[gp]
     _, _, cost = paired_transforms(P.reshape(-1, 2)[tri_trial[:, None] * n_p + tri_p.vertices[gp]],
                                    Q.reshape(-1, 2)[tri_trial[:, None] * n_q + mapped[gp]])
-    # 2σ² from σ as a Python float, as the one-pair call computed it.
-    two_var = np.array([2.0 * float(s)**2 for s in sigma])
     tri_pairs = np.stack([gp - tri_p.offsets[tri_trial], gq - tri_q.offsets[tri_trial]], axis=1)
-    return tri_trial, tri_pairs, -cost / two_var[tri_trial]
+    return tri_trial, tri_pairs, -cost / pair_variances(sigma)[tri_trial]

@@ -44,7 +44,8 @@ from .alignment import (
     rotation, transform_covariances, wrap_angle,
 )
 from .association import (
-    SHARED_PRIOR, associate_batch, declared_triangles_batch, mapped_landmarks, own_covariances,
+    SHARED_PRIOR, associate_batch, covariance_rows, declared_triangles_batch, mapped_landmarks, own_covariances,
+    pair_variances,
 )
 from .exhaustive import Mixture, Mixtures, bump_height, inside_hull, pair_noise
 from .correspondence import correspondences, resolve_correspondences
@@ -176,8 +177,14 @@ class _Pool:
         return cls(vp, vq, P, Q, scores, sigma, pool, first[:-1], np.diff(first), cp, cq)
 
     def two_var(self, pair) -> np.ndarray:
-        """2σ² of map pairs ``pair``, from σ as a Python float (the bits of the gates)."""
-        return np.array([2 * float(s)**2 for s in self.sigma])[pair]
+        """2σ² of map pairs ``pair`` (``association.pair_variances``: the bits of the gates)."""
+        return pair_variances(self.sigma)[pair]
+
+
+def _rows_of_blocks(size):
+    """Rows of blocks of ``size`` rows laid end to end: each row's block and its place within the block."""
+    block = np.repeat(np.arange(len(size)), size)
+    return block, np.arange(block.size) - np.repeat(np.cumsum(size) - size, size)
 
 
 def _hypotheses(cand: _Pool):
@@ -187,9 +194,9 @@ def _hypotheses(cand: _Pool):
     hypothesis h's among its map pair's pool are the flags
     ``inliers[block[h]:block[h] + size[pair[h]]]``.
     """
-    rank = np.arange(len(cand.pool)) - np.repeat(cand.first, cand.size)
+    pair, rank = _rows_of_blocks(cand.size)
     hyp = np.flatnonzero(rank < MAX_HYPOTHESES)
-    pair = np.repeat(np.arange(len(cand.size)), np.minimum(cand.size, MAX_HYPOTHESES))
+    pair = pair[hyp]
     theta, t, _ = paired_transforms(cand.cp[hyp], cand.cq[hyp])
     centre = centroids(cand.cp[hyp])
     spread = np.sum((cand.cp[hyp] - centre[:, None]) ** 2, axis=(1, 2))  # Σ‖p̃‖²
@@ -197,12 +204,6 @@ def _hypotheses(cand: _Pool):
                                   np.sin(theta), t, centre, spread, cand.two_var(pair), GATE_6)
     block = np.cumsum(cand.size[pair]) - cand.size[pair]
     return hyp, pair, inliers, block
-
-
-def _rows_of_blocks(size):
-    """Rows of blocks of ``size`` rows laid end to end: each row's block and its place within the block."""
-    block = np.repeat(np.arange(len(size)), size)
-    return block, np.arange(block.size) - np.repeat(np.cumsum(size) - size, size)
 
 
 def _consensus_groups(vp, vq, P, Q, scores, sigma, trial):
@@ -488,11 +489,6 @@ def _triangle_correspondences(P, Q, sigma, match: TriangleMatch, log_tau):
     return trial[inlying], pairs[inlying], np.bincount(uniq[~keep, 0] // n, minlength=B), n_candidates
 
 
-def _rows(cov, rows):
-    """The optional per-landmark covariances of the map pairs ``rows`` (None stays None)."""
-    return None if cov is None else cov[rows]
-
-
 def _fitted(P, Q, sigma, trial, pairs):
     """The map pairs with at least 3 associations, their associations renumbered to them and the n-point
     fit of each: (active, local trial, pairs, θ, t, µ, (θ, t) covariance)."""
@@ -518,13 +514,14 @@ def _associate_fitted(P, Q, sigma, trial, pairs, cov_p, cov_q, hulls, *, mixture
     if active.size == 0:
         return active, pairs, np.empty(0, dtype=bool)
     if mixture:
-        s = [pair_noise(float(sigma[b]), *((None, None) if cov_p is None else (cov_p[b], cov_q[b]))) for b in active]
+        s = [pair_noise(float(sigma[b]), covariance_rows(cov_p, b), covariance_rows(cov_q, b)) for b in active]
         c = [bump_height(P.shape[1], hulls[b][0].volume, s_b, SHARED_PRIOR) for b, s_b in zip(active, s)]
         models = Mixture.of_maps(P[active], s, c, SHARED_PRIOR, [hulls[b][0] for b in active])
         theta, t = Mixtures.of(models).em(Q[active], np.arange(active.size), theta, t)
         cov = transform_covariances(local, mu, theta, sigma[active], np.ones(len(active), dtype=bool))
-    tr, pairs, contested = associate_batch(P[active], Q[active], theta, t, cov, sigma[active], _rows(cov_p, active),
-                                           _rows(cov_q, active), [hulls[b] for b in active], with_margin)
+    tr, pairs, contested = associate_batch(P[active], Q[active], theta, t, cov, sigma[active],
+                                           covariance_rows(cov_p, active), covariance_rows(cov_q, active),
+                                           [hulls[b] for b in active], with_margin)
     return active[tr], pairs, contested
 
 
@@ -548,7 +545,7 @@ def _verified_pairs(P, Q, sigma, trial, pairs, n_hypotheses, cov_p, cov_q, hulls
     if active.size == 0:
         return trial[:0], kept, contested
     nfa = match_nfa_batch(P[active], Q[active], theta, t, cov, local, kept, n_hypotheses[active], sigma[active],
-                          _rows(cov_p, active), _rows(cov_q, active), [hulls[b][0] for b in active])
+                          covariance_rows(cov_p, active), covariance_rows(cov_q, active), [hulls[b][0] for b in active])
     accepted = (nfa <= MATCH_NFA)[local]
     return active[local][accepted], kept[accepted], contested[accepted]
 
@@ -586,7 +583,8 @@ def consensus_merge(P, Q, sigma, match: TriangleMatch, log_tau, cov_p=None, cov_
         unmatched = np.flatnonzero(np.bincount(trial, minlength=len(P)) == 0)
         if unmatched.size:
             found, more, more_contested, _ = fallback(P[unmatched], Q[unmatched], sigma[unmatched],
-                                                      _rows(cov_p, unmatched), _rows(cov_q, unmatched),
+                                                      covariance_rows(cov_p, unmatched),
+                                                      covariance_rows(cov_q, unmatched),
                                                       (hulls_p.take(unmatched), hulls_q.take(unmatched)))
             trial = np.concatenate([trial, unmatched[found]])
             order = np.argsort(trial, kind="stable")

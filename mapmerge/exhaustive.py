@@ -251,7 +251,7 @@ class Mixtures:
     ``Mixture.log_lr`` one at a time)."""
 
     models: tuple
-    arrays: tuple  # the kernels' per-model arguments (``_stacked``)
+    arrays: tuple  # the kernels' per-model arguments: hulls, s, c, radius and ``stacked_grids``
 
     @classmethod
     def of(cls, models) -> "Mixtures":

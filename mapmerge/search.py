@@ -62,7 +62,7 @@ import numpy as np
 from scipy.spatial import ConvexHull, cKDTree
 
 from .alignment import Alignment, fit_transforms
-from .association import associate_batch, declared_triangles_batch
+from .association import associate_batch, covariance_rows, declared_triangles_batch
 from .exhaustive import Mixture, Mixtures, bump_height, pair_noise
 from .neighbours import cell_grids, nearest_within, njit, ragged_starts, stacked_grids
 from .result import MergeBatch, build_batch
@@ -345,8 +345,8 @@ def _best_hypotheses(P, Q, sigma, cov_p, cov_q, hulls):
     ``hulls``: each P's convex hull."""
     B = len(P)
     best, nfa = [None] * B, np.full(B, np.inf)
-    r = np.array([pair_noise(float(sigma[b]), None if cov_p is None else cov_p[b],
-                             None if cov_q is None else cov_q[b]) for b in range(B)])
+    r = np.array([pair_noise(float(sigma[b]), covariance_rows(cov_p, b),
+                             covariance_rows(cov_q, b)) for b in range(B)])
     area = np.array([hull.volume for hull in hulls])
     live = np.flatnonzero(~(r > MAX_NOISE_SPACING * np.sqrt(area / P.shape[1])))
     if live.size == 0:
@@ -427,7 +427,7 @@ def search_batch(P, Q, sigma, cov_p=None, cov_q=None, hulls=None):
     trial, pairs, contested = associate_batch(
         P[rows], Q[rows], np.array([best[b].theta for b in rows]), np.stack([best[b].t for b in rows]),
         np.stack([best[b].cov for b in rows]), np.asarray(sigma, dtype=float)[rows],
-        None if cov_p is None else cov_p[rows], None if cov_q is None else cov_q[rows],
+        covariance_rows(cov_p, rows), covariance_rows(cov_q, rows),
         [(hulls_p[b], hulls_q[b]) for b in rows])
     trial = rows[trial]
     keep = np.bincount(trial, minlength=B)[trial] >= 3
@@ -479,8 +479,8 @@ class SearchMemo:
         self._answers: dict[bytes, tuple] = {}
 
     def __call__(self, P, Q, sigma, cov_p=None, cov_q=None, hulls=None):
-        keys = [_digest(P[b], Q[b], np.float64(sigma[b]), None if cov_p is None else cov_p[b],
-                        None if cov_q is None else cov_q[b]) for b in range(len(P))]
+        keys = [_digest(P[b], Q[b], np.float64(sigma[b]), covariance_rows(cov_p, b),
+                        covariance_rows(cov_q, b)) for b in range(len(P))]
         first = {}  # each map pair not seen before, once
         for b, key in enumerate(keys):
             if key not in self._answers:
@@ -488,8 +488,8 @@ class SearchMemo:
         new = np.array(list(first.values()), dtype=np.intp)
         if new.size:
             trial, pairs, contested, nfa = search_batch(P[new], Q[new], np.asarray(sigma)[new],
-                                                        None if cov_p is None else cov_p[new],
-                                                        None if cov_q is None else cov_q[new],
+                                                        covariance_rows(cov_p, new),
+                                                        covariance_rows(cov_q, new),
                                                         None if hulls is None else (hulls[0].take(new),
                                                                                     hulls[1].take(new)))
             bounds = np.searchsorted(trial, np.arange(new.size + 1))

@@ -64,8 +64,11 @@ class MapHulls:
     need a map's hull (its density, inside tests) share one, also across merges of the same maps at other
     thresholds (``take`` gives a view that shares them)."""
 
-    def __init__(self, maps: np.ndarray) -> None:
-        self._maps, self._rows, self._known = maps, np.arange(len(maps)), {}
+    def __init__(self, maps: np.ndarray, rows=None, known: dict | None = None) -> None:
+        # ``rows`` and ``known``: a view's rows of ``maps`` and the hulls it shares (``take``).
+        self._maps = maps
+        self._rows = np.arange(len(maps)) if rows is None else rows
+        self._known = {} if known is None else known
 
     def __len__(self) -> int:
         return len(self._rows)
@@ -78,9 +81,7 @@ class MapHulls:
 
     def take(self, maps) -> "MapHulls":
         """The hulls of maps ``maps`` (indices), renumbered 0..len(maps)-1, shared with this batch."""
-        view = MapHulls.__new__(MapHulls)
-        view._maps, view._rows, view._known = self._maps, self._rows[maps], self._known
-        return view
+        return MapHulls(self._maps, self._rows[maps], self._known)
 
 
 @dataclass(frozen=True)
