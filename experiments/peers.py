@@ -3,6 +3,7 @@
     python -m experiments.peers [--layout strip|interleaved] [--methods M ...] [--processes 1]
     python -m experiments.peers --scaling [--sizes 100 1000 10000] [--time-limit 120]   # time per merge
     python -m experiments.peers --calibrate [--out results/peers]   # the peers' acceptance thresholds
+    python -m experiments.peers --equal-rate [--pairs 1000]   # every method at one false-merge rate per cell
 
 Every method sees the same pairs: ``make_pair(n, 0.75, snr, rng=seed,
 layout=layout)`` with seeds 0, 1, ... for the related pairs and the same
@@ -40,12 +41,28 @@ records each peer's inlier count before its acceptance test and writes
 largest inlier share of the smaller map, and the smallest acceptance share
 that lets at most one of them through. The peers' module constants
 (``*_MIN_INLIERS``) hold, per size, the least inlier count that lets at most one through.
+
+``--equal-rate`` compares the methods at one false-merge rate in every
+cell (``EQUAL_RATE_CELLS``), not only at the 30 dB the shipped bounds were
+set at: below it a peer's chance inliers grow and its shipped bound lets
+most unrelated pairs through. Per cell, each peer's inliers are counted on
+``EQUAL_RATE_TUNING`` unrelated tuning pairs of that cell (seeds
+``CALIBRATION_SEED`` + i), and its bound is the least count that lets at
+most a share ``EQUAL_RATE`` of them through; on the cell's reported pairs
+(seeds 0, 1, ...: related and as many unrelated) it then accepts a merge
+when its inliers reach that bound. ``consensus`` keeps its own a contrario
+test. Each chunk of pairs is kept in ``EQUAL_RATE_ROWS`` (keyed by the
+code's digest) as soon as it is done, so a stopped run resumes. Writes
+``equal_rate.csv`` / ``.md``.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import functools
 import importlib.util
+import itertools
 import os
 import time
 from multiprocessing import Pool
@@ -59,7 +76,10 @@ import pandas as pd
 
 import mapmerge as mm
 from experiments.intervals import wilson
+from experiments.trials import code_digest
 from mapmerge.baselines import clipper, cpd, teaser
+from mapmerge.baselines.associations import min_inliers
+from mapmerge.result import MIN_MATCHED_LANDMARKS
 
 #: (landmarks per map, SNR in dB) of every cell per layout; overlap 0.75.
 CELLS = {"strip": [(10, 15), (10, 20), (10, 30), (20, 15), (20, 20), (20, 30),
@@ -90,6 +110,24 @@ SCALING_PAIRS = 3
 SCALING_SNR = 30.0
 SCALING_MEMORY_GB = 8
 PEER_MODULES = {"cpd": "pycpd", "clipper": "clipperpy", "teaser": "teaserpp_python", "astroalign": "astroalign"}
+#: Each peer's module and the name of its table of acceptance bounds (``--equal-rate`` sets them per cell).
+PEER_BOUNDS = {"cpd": (cpd, "CPD_MIN_INLIERS"), "clipper": (clipper, "CLIPPER_MIN_INLIERS"),
+               "teaser": (teaser, "TEASER_MIN_INLIERS")}
+#: ``--equal-rate``: (landmarks per map, SNR in dB) of every cell, per layout.
+EQUAL_RATE_CELLS = {layout: [(n, snr) for n in (10, 20) for snr in (15, 20, 25, 30)] +
+                    [(100, snr) for snr in (10, 15, 20, 30)] for layout in ("strip", "interleaved")}
+#: The false-merge rate every peer is held to in each cell, and the unrelated tuning pairs it is set on.
+EQUAL_RATE = 1e-3
+EQUAL_RATE_TUNING = 1000
+#: Reported related (and as many unrelated) pairs per cell at most (``--pairs`` for fewer); fewer for the slow
+#: ones (0: not run): CPD takes 0.1 s a merge at 10-20 landmarks and 0.6-1.2 s at 100, where its 1,000 tuning
+#: pairs per cell alone would take hours; CLIPPER and TEASER++ take 0.05-0.7 s a merge at 100 landmarks.
+EQUAL_RATE_PAIRS = 1000
+EQUAL_RATE_SLOW = {("cpd", 10): 500, ("cpd", 20): 500, ("cpd", 100): 0, ("clipper", 100): 500, ("teaser", 100): 500}
+#: Pairs per job of ``--equal-rate`` (its unit of parallelism and of resumption).
+EQUAL_RATE_CHUNK = 100
+#: Where ``--equal-rate`` keeps each chunk's per-pair outcomes (not committed).
+EQUAL_RATE_ROWS = Path("outputs") / "peers" / "equal_rate"
 
 
 def available_methods() -> list[str]:
@@ -339,25 +377,189 @@ def calibrate(out: Path, processes: int = 2) -> pd.DataFrame:
     return df
 
 
+@contextlib.contextmanager
+def accepting_every_inlier_set(method: str):
+    """A peer made to accept every inlier set of at least ``result.MIN_MATCHED_LANDMARKS`` pairs for the
+    duration, so that its bound can be applied afterwards to the recorded inlier counts; other methods as
+    they are."""
+    if method not in PEER_BOUNDS:
+        yield
+        return
+    module, name = PEER_BOUNDS[method]
+    shipped = getattr(module, name)
+    setattr(module, name, {size: 0 for size in shipped})
+    try:
+        yield
+    finally:
+        setattr(module, name, shipped)
+
+
+@functools.cache
+def _rows_key() -> str:
+    return code_digest(__file__)[:12]
+
+
+def chunk_path(job) -> Path:
+    method, layout, n, snr, kind, first, count = job
+    return EQUAL_RATE_ROWS / f"{method}_{layout}_{n}_{snr:g}_{kind}_{first}_{count}_{_rows_key()}.csv"
+
+
+def outcome_chunk(job) -> pd.DataFrame:
+    """One chunk of ``--equal-rate``: ``method`` on the pairs of seeds [first, first + count) of a cell's
+    ``kind`` (related, unrelated, tuning): each pair's seed, whether it merged, whether with the right
+    transform, and how many landmark pairs it matched (a peer's inliers: here it accepts any inlier set)."""
+    method, layout, n, snr, kind, first, count = job
+    path = chunk_path(job)
+    if path.is_file():
+        return pd.read_csv(path)
+    seeds = (CALIBRATION_SEED if kind == "tuning" else 0) + np.arange(first, first + count)
+    scen = mm.simulate.make_pairs(n, OVERLAP, snr, [int(s) for s in seeds], unrelated=kind != "related",
+                                  layout=layout)
+    with accepting_every_inlier_set(method):
+        merged = mm.merge_batch(scen.p, scen.q, scen.sigma, method=method, rng=0)
+    err = mm.metrics.map_errors_batch(scen, merged)
+    found = err["matched"] & err["transform_found"] if kind == "related" else np.zeros(len(seeds), bool)
+    rows = pd.DataFrame({"seed": seeds, "merged": err["matched"], "found": found, "pairs": err["n_pairs"]})
+    path.parent.mkdir(parents=True, exist_ok=True)
+    part = path.with_suffix(".part")
+    rows.to_csv(part, index=False)
+    part.replace(path)  # a stopped run leaves no half-written chunk
+    return rows
+
+
+def equal_rate_cells(landmarks=None) -> list[tuple]:
+    """(layout, n, SNR) of ``EQUAL_RATE_CELLS``, those of maps of ``landmarks`` landmarks when given."""
+    return [(layout, n, snr) for layout, cells in EQUAL_RATE_CELLS.items() for n, snr in cells
+            if landmarks is None or n in landmarks]
+
+
+def equal_rate_jobs(methods, pairs: int, cells) -> list[tuple]:
+    """The chunks of the cells: reported related and unrelated pairs, and a peer's tuning pairs."""
+    jobs = []
+    for (layout, n, snr), method in itertools.product(cells, methods):
+        reported = min(EQUAL_RATE_SLOW.get((method, n), pairs), pairs)
+        if not reported:
+            continue
+        kinds = [("related", reported), ("unrelated", reported)]
+        kinds += [("tuning", EQUAL_RATE_TUNING)] if method in PEER_BOUNDS else []
+        jobs += [(method, layout, n, snr, kind, first, min(EQUAL_RATE_CHUNK, count - first))
+                 for kind, count in kinds for first in range(0, count, EQUAL_RATE_CHUNK)]
+    # CPD's chunks and the large maps first, so that the workers finish together.
+    jobs.sort(key=lambda j: (j[0] != "cpd", -j[2]))
+    return jobs
+
+
+def equal_rate_table(rows: pd.DataFrame, oracle: dict) -> pd.DataFrame:
+    """Per cell and method: the found rate, wrong and false merges at the cell's bound (a peer's: the least
+    inlier count that lets at most ``EQUAL_RATE`` of its tuning pairs through), and a peer's at its shipped
+    bound beside it."""
+    out = []
+    for (layout, n, snr, method), cell in rows.groupby(["layout", "n_landmarks", "snr_db", "method"], observed=True):
+        rel, unrel, tune = (cell[cell.kind == kind] for kind in ("related", "unrelated", "tuning"))
+        row = {"layout": layout, "n_landmarks": n, "snr_db": snr, "method": method, "pairs": len(rel)}
+        if method in PEER_BOUNDS:
+            top = np.sort(tune["pairs"].to_numpy())[::-1]
+            allowed = int(np.floor(EQUAL_RATE * len(top)))
+            bound = max(MIN_MATCHED_LANDMARKS, int(top[allowed]) + 1 if allowed < len(top) else 0)
+            shipped = max(MIN_MATCHED_LANDMARKS, min_inliers(getattr(*PEER_BOUNDS[method]), n, n))
+            row.update(tuning_pairs=len(tune), bound=bound, shipped_bound=shipped,
+                       shipped_found=int((rel.found & (rel["pairs"] >= shipped)).sum()),
+                       shipped_false_merges=int((unrel["pairs"] >= shipped).sum()))
+            accepted_rel, accepted_unrel = rel["pairs"] >= bound, unrel["pairs"] >= bound
+        else:
+            accepted_rel, accepted_unrel = rel.merged, unrel.merged
+        found = int((accepted_rel & rel.found).sum())
+        lo, hi = wilson(found, len(rel))
+        row.update(found=found, found_rate=found / len(rel), found_lo=float(lo), found_hi=float(hi),
+                   wrong_merges=int((accepted_rel & ~rel.found).sum()), false_merges=int(accepted_unrel.sum()),
+                   correspondence_oracle_found=oracle[layout, n, snr])
+        out.append(row)
+    df = pd.DataFrame(out)
+    return df.merge(detector_limits(), on=["layout", "n_landmarks", "snr_db"], how="left")
+
+
+def equal_rate(out: Path, processes: int = 2, methods=None, pairs: int = EQUAL_RATE_PAIRS,
+               landmarks=None) -> pd.DataFrame:
+    """consensus and the installed peers at one false-merge rate per cell (module docstring), on the cells of
+    maps of ``landmarks`` landmarks when given; writes equal_rate.csv / .md."""
+    methods = [m for m in (methods or available_methods()) if m == "consensus" or m in PEER_BOUNDS]
+    cells = equal_rate_cells(landmarks)
+    jobs = equal_rate_jobs(methods, pairs, cells)
+    frames = []
+    with Pool(processes) as pool:
+        for k, (job, rows) in enumerate(zip(jobs, pool.imap(outcome_chunk, jobs))):
+            frames.append(rows.assign(method=job[0], layout=job[1], n_landmarks=job[2], snr_db=float(job[3]),
+                                      kind=job[4]))
+            print(f"{k + 1}/{len(jobs)} {job[:5]} seeds {job[5]}+{job[6]}", flush=True)
+        oracle = dict(zip(cells, pool.starmap(oracle_found, [(*cell, pairs) for cell in cells])))
+    oracle = {(layout, n, float(snr)): found / pairs for (layout, n, snr), found in oracle.items()}
+    rows = pd.concat(frames, ignore_index=True)
+    rows["method"] = pd.Categorical(rows["method"], methods)
+    df = equal_rate_table(rows, oracle)
+    out.mkdir(parents=True, exist_ok=True)
+    df.to_csv(out / "equal_rate.csv", index=False, float_format="%.4g")
+    write_equal_rate(df, out / "equal_rate.md", pairs)
+    return df
+
+
+def write_equal_rate(df: pd.DataFrame, path: Path, pairs: int) -> None:
+    """equal_rate.md: one row per cell, one column per method."""
+    methods = list(dict.fromkeys(df["method"].astype(str)))
+    lines = [(f"Every method at one false-merge rate per cell. Transform found on related pairs, % [95 % Wilson "
+              f"interval] (pairs), wrong merges (related pairs merged with a transform that is not found), false "
+              f"merges on as many unrelated pairs (seeds 0, 1, ...). consensus: its own test. A peer: its bound "
+              f"(inliers) set in the cell on {EQUAL_RATE_TUNING:,} unrelated tuning pairs (seeds "
+              f"{CALIBRATION_SEED:,} + i) to let at most {EQUAL_RATE:g} of them through; in brackets its shipped "
+              f"bound (set at 30 dB) on the same pairs. Limits: the fit knowing every correspondence ({pairs:,} "
+              f"related pairs) and the exhaustive detector (results/detector/, its own pairs, at a false-alarm "
+              f"rate of 1e-3 where it has 10,000 null pairs)."), "",
+             "| layout, n, SNR | " + " | ".join(methods) + " | oracle fit | detector |",
+             "|---|" + "---|" * (len(methods) + 2)]
+    for (layout, n, snr), cell in df.groupby(["layout", "n_landmarks", "snr_db"], sort=False):
+        by = cell.set_index("method")
+        parts = []
+        for m in methods:
+            if m not in by.index:
+                parts.append("not run")
+                continue
+            r = by.loc[m]
+            text = (f"{100 * r.found_rate:.1f} [{100 * r.found_lo:.1f}, {100 * r.found_hi:.1f}] ({int(r.pairs)}), "
+                    f"{int(r.wrong_merges)} wrong, {int(r.false_merges)} false")
+            if m in PEER_BOUNDS:
+                text += (f"; bound {int(r.bound)} (shipped {int(r.shipped_bound)}: "
+                         f"{100 * r.shipped_found / r.pairs:.1f} %, {int(r.shipped_false_merges)} false)")
+            parts.append(text)
+        first = cell.iloc[0]
+        det = "" if pd.isna(first.detector_found) else f"{100 * first.detector_found:.1f}"
+        lines.append(f"| {layout}, {n}, {snr:g} dB | " + " | ".join(parts) +
+                     f" | {100 * first.correspondence_oracle_found:.1f} | {det} |")
+    path.write_text("\n".join(lines) + "\n")
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", type=Path, default=Path("results/peers"))
     ap.add_argument("--calibrate", action="store_true", help="set the peers' thresholds instead")
     ap.add_argument("--scaling", action="store_true", help="time per merge against map size instead")
+    ap.add_argument("--equal-rate", action="store_true", help="every method at one false-merge rate per cell")
     ap.add_argument("--processes", type=int, default=2)
     ap.add_argument("--layout", choices=list(CELLS), default="strip")
     ap.add_argument("--methods", nargs="+", help="default: every available method")
-    ap.add_argument("--pairs", type=int, default=PAIRS, help="related (and unrelated) pairs per cell at most")
+    ap.add_argument("--pairs", type=int, help=f"related (and unrelated) pairs per cell at most (default: {PAIRS}, "
+                                              f"{EQUAL_RATE_PAIRS} with --equal-rate)")
     ap.add_argument("--sizes", type=int, nargs="+", default=list(SCALING_SIZES))
+    ap.add_argument("--landmarks", type=int, nargs="+", help="--equal-rate: only the cells of these map sizes")
     ap.add_argument("--time-limit", type=float, default=120.0, help="seconds a merge may take (--scaling)")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     if args.calibrate:
         df = calibrate(args.out, args.processes)
+    elif args.equal_rate:
+        df = equal_rate(args.out, args.processes, args.methods, args.pairs or EQUAL_RATE_PAIRS, args.landmarks)
     elif args.scaling:
         df = scaling(args.out, args.sizes, args.time_limit, args.methods)
     else:
-        df = compare(args.out, args.processes, args.layout, args.methods, args.pairs)
+        df = compare(args.out, args.processes, args.layout, args.methods, args.pairs or PAIRS)
     print(df.to_string())
     print(f"{time.perf_counter() - t0:.0f} s")
 

@@ -60,3 +60,38 @@ def test_putative_associations_all_to_all_then_gated():
 def test_one_to_one_keeps_the_first_pair_of_each_landmark():
     pairs = np.array([[3, 1], [0, 1], [3, 2], [2, 0], [1, 4]])
     np.testing.assert_array_equal(associations.one_to_one(pairs), [[1, 4], [2, 0], [3, 1]])
+
+
+def test_equal_rate_bound_lets_through_at_most_its_share_of_tuning_pairs():
+    import pandas as pd
+
+    from experiments import peers
+
+    def rows(kind, pairs, found=None):
+        found = [False] * len(pairs) if found is None else found
+        return pd.DataFrame({"method": "clipper", "layout": "strip", "n_landmarks": 10, "snr_db": 20.0, "kind": kind,
+                             "seed": range(len(pairs)), "merged": [k >= 3 for k in pairs], "found": found,
+                             "pairs": pairs})
+
+    # 1,000 tuning pairs at 1e-3: one may pass, so the bound is one above the second-largest count (7).
+    tuning = [3] * 997 + [5, 7, 9]
+    table = peers.equal_rate_table(pd.concat([
+        rows("tuning", tuning), rows("related", [8, 8, 7, 2, 9], [True, False, True, False, True]),
+        rows("unrelated", [8, 4, 0, 7, 3])]), {("strip", 10, 20.0): 0.6})
+    row = table.iloc[0]
+    assert row.bound == 8
+    assert (row.found, row.wrong_merges, row.false_merges) == (2, 1, 1)
+    shipped = peers.clipper.CLIPPER_MIN_INLIERS[10]
+    assert row.shipped_bound == shipped
+    assert row.shipped_false_merges == sum(k >= shipped for k in [8, 4, 0, 7, 3])
+
+
+def test_equal_rate_chunks_are_kept_and_read_back(tmp_path, monkeypatch):
+    from experiments import peers
+
+    monkeypatch.setattr(peers, "EQUAL_RATE_ROWS", tmp_path)
+    job = ("consensus", "strip", 10, 30, "related", 0, 4)
+    first = peers.outcome_chunk(job)
+    assert peers.chunk_path(job).is_file() and not list(tmp_path.glob("*.part"))
+    assert len(first) == 4 and first["found"].any()
+    assert peers.outcome_chunk(job).equals(first)
