@@ -53,7 +53,7 @@ most a share ``EQUAL_RATE`` of them through; on the cell's reported pairs
 when its inliers reach that bound. ``consensus`` keeps its own a contrario
 test. Each chunk of pairs is kept in ``EQUAL_RATE_ROWS`` (keyed by the
 code's digest) as soon as it is done, so a stopped run resumes. Writes
-``equal_rate.csv`` / ``.md``.
+``equal_rate.csv`` / ``.md`` and the figure ``equal_rate.png`` / ``.pdf``.
 """
 
 from __future__ import annotations
@@ -499,7 +499,54 @@ def equal_rate(out: Path, processes: int = 2, methods=None, pairs: int = EQUAL_R
     out.mkdir(parents=True, exist_ok=True)
     df.to_csv(out / "equal_rate.csv", index=False, float_format="%.4g")
     write_equal_rate(df, out / "equal_rate.md", pairs)
+    equal_rate_figure(df, out)
     return df
+
+
+def equal_rate_figure(df: pd.DataFrame, out: Path) -> list[Path]:
+    """equal_rate.png / .pdf: transform found against SNR at one false-merge rate, a panel per layout and map
+    size: consensus, the peers and the two limits (six curves at most)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from experiments.figures import STYLE, save_figure
+
+    layouts, sizes = list(dict.fromkeys(df["layout"])), sorted(df["n_landmarks"].unique())
+    methods = list(dict.fromkeys(df["method"].astype(str)))
+    with plt.rc_context(STYLE):
+        fig, axes = plt.subplots(len(layouts), len(sizes), figsize=(2.6 * len(sizes), 2.4 * len(layouts) + 0.6),
+                                 squeeze=False, sharex=True, sharey=True)
+        for (row, layout), (col, n) in itertools.product(enumerate(layouts), enumerate(sizes)):
+            ax, part = axes[row, col], df[(df["layout"] == layout) & (df["n_landmarks"] == n)]
+            for k, m in enumerate(methods):
+                g = part[part["method"].astype(str) == m].sort_values("snr_db")
+                if len(g):
+                    ax.errorbar(g.snr_db, g.found_rate, yerr=[g.found_rate - g.found_lo, g.found_hi - g.found_rate],
+                                color=f"C{k}", marker="o", ms=2.5, lw=1.0, capsize=1.5, label=m)
+            limits = part.drop_duplicates("snr_db").sort_values("snr_db")
+            ax.plot(limits.snr_db, limits.correspondence_oracle_found, color="0.3", lw=1.0, ls="--",
+                    label="limit: fit knowing every correspondence")
+            det = limits.dropna(subset=["detector_found"])
+            if len(det):
+                ax.plot(det.snr_db, det.detector_found, color="k", lw=1.4, ls=":",
+                        label="limit: exhaustive detector, 1e-3 false alarms")
+            ax.set_title(f"{layout}, {n} landmarks")
+            ax.set_ylim(-0.02, 1.02)
+            ax.grid(alpha=0.3, lw=0.4)
+            if row == len(layouts) - 1:
+                ax.set_xlabel("SNR (dB)")
+            if col == 0:
+                ax.set_ylabel("transform found")
+        named = {}
+        for ax in axes.ravel():
+            for h, lab in zip(*ax.get_legend_handles_labels()):
+                named.setdefault(lab, h)
+        fig.legend(named.values(), named.keys(), loc="lower center", ncol=3, frameon=False, fontsize=6)
+        fig.suptitle(f"At most {EQUAL_RATE:g} false merges per cell, {OVERLAP:.0%} common landmarks")
+        fig.tight_layout(rect=(0, 0.08, 1, 1))
+        return save_figure(fig, out, "equal_rate")
 
 
 def write_equal_rate(df: pd.DataFrame, path: Path, pairs: int) -> None:
