@@ -52,7 +52,7 @@ most a share ``EQUAL_RATE`` of them through; on the cell's reported pairs
 (seeds 0, 1, ...: related and as many unrelated) it then accepts a merge
 when its inliers reach that bound. ``consensus`` keeps its own a contrario
 test. Each chunk of pairs is kept in ``EQUAL_RATE_ROWS`` (keyed by the
-code's digest) as soon as it is done, so a stopped run resumes. Writes
+digest of the library and of the code that computes a chunk) as soon as it is done, so a stopped run resumes. Writes
 ``equal_rate.csv`` / ``.md`` and the figure ``equal_rate.png`` / ``.pdf``.
 """
 
@@ -61,7 +61,9 @@ from __future__ import annotations
 import argparse
 import contextlib
 import functools
+import hashlib
 import importlib.util
+import inspect
 import itertools
 import os
 import time
@@ -396,7 +398,12 @@ def accepting_every_inlier_set(method: str):
 
 @functools.cache
 def _rows_key() -> str:
-    return code_digest(__file__)[:12]
+    """The digest that keys ``--equal-rate``'s kept chunks: the library's sources and the functions that
+    compute a chunk (not the tables drawn from them)."""
+    digest = hashlib.sha256(code_digest(mm.__file__).encode())
+    for function in (outcome_chunk, accepting_every_inlier_set):
+        digest.update(inspect.getsource(function).encode())
+    return digest.hexdigest()[:12]
 
 
 def chunk_path(job) -> Path:
