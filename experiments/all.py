@@ -135,6 +135,8 @@ STEPS: tuple[Step, ...] = (
     Step("peers", ("experiments.peers",), ("results/peers",), (*PEERS, "astroalign")),
     Step("peers_interleaved", ("experiments.peers", "--layout", "interleaved"), ("results/peers",), PEERS),
     Step("peers_scaling", ("experiments.peers", "--scaling"), ("results/peers",), PEERS),
+    # Each peer's bound set per cell (1,000 tuning pairs) so that every method is at one false-merge rate.
+    Step("peers_equal_rate", ("experiments.peers", "--equal-rate"), ("results/peers",), PEERS),
     Step("docs", ("experiments.docs",), ()),
 )
 
