@@ -52,7 +52,8 @@ most a share ``EQUAL_RATE`` of them through; on the cell's reported pairs
 (seeds 0, 1, ...: related and as many unrelated) it then accepts a merge
 when its inliers reach that bound. ``consensus`` keeps its own a contrario
 test. Each chunk of pairs is kept in ``EQUAL_RATE_ROWS`` (keyed by the
-digest of the library and of the code that computes a chunk) as soon as it is done, so a stopped run resumes. Writes
+digest of the library sources the method runs and of the code that
+computes a chunk) as soon as it is done, so a stopped run resumes. Writes
 ``equal_rate.csv`` / ``.md`` and the figure ``equal_rate.png`` / ``.pdf``.
 """
 
@@ -78,7 +79,6 @@ import pandas as pd
 
 import mapmerge as mm
 from experiments.intervals import wilson
-from experiments.trials import code_digest
 from mapmerge.baselines import clipper, cpd, teaser
 from mapmerge.baselines.associations import min_inliers
 from mapmerge.result import MIN_MATCHED_LANDMARKS
@@ -130,6 +130,13 @@ EQUAL_RATE_SLOW = {("cpd", 10): 500, ("cpd", 20): 500, ("cpd", 100): 0, ("clippe
 EQUAL_RATE_CHUNK = 100
 #: Where ``--equal-rate`` keeps each chunk's per-pair outcomes (not committed).
 EQUAL_RATE_ROWS = Path("outputs") / "peers" / "equal_rate"
+#: The library's sources a peer's chunk runs (the pairs, the peers' merge, the fit on their inliers, the
+#: metrics), which key its kept chunks, so that a change to consensus's own stages keeps them. A test traces
+#: a peer's chunk and checks that it runs no other module; ``neighbours`` holds compiled helpers, which a
+#: trace of Python calls cannot see.
+PEER_SOURCES = ("__init__.py", "_validation.py", "alignment.py", "assignment.py", "baselines", "combining.py",
+                "matching.py", "merging.py", "metrics.py", "neighbours.py", "result.py", "simulate.py",
+                "triangles.py")
 
 
 def available_methods() -> list[str]:
@@ -397,10 +404,17 @@ def accepting_every_inlier_set(method: str):
 
 
 @functools.cache
-def _rows_key() -> str:
-    """The digest that keys ``--equal-rate``'s kept chunks: the library's sources and the functions that
-    compute a chunk (not the tables drawn from them)."""
-    digest = hashlib.sha256(code_digest(mm.__file__).encode())
+def _rows_key(method: str) -> str:
+    """The digest that keys ``--equal-rate``'s kept chunks of ``method``: the library sources it runs (a
+    peer: ``PEER_SOURCES``; consensus: all of them) and the functions that compute a chunk (not the tables
+    drawn from them)."""
+    library = Path(mm.__file__).resolve().parent
+    files = sorted(library.rglob("*.py"))
+    if method in PEER_BOUNDS:
+        files = [f for f in files if f.relative_to(library).parts[0] in PEER_SOURCES]
+    digest = hashlib.sha256()
+    for path in files:
+        digest.update(path.relative_to(library).as_posix().encode() + path.read_bytes())
     for function in (outcome_chunk, accepting_every_inlier_set):
         digest.update(inspect.getsource(function).encode())
     return digest.hexdigest()[:12]
@@ -408,7 +422,7 @@ def _rows_key() -> str:
 
 def chunk_path(job) -> Path:
     method, layout, n, snr, kind, first, count = job
-    return EQUAL_RATE_ROWS / f"{method}_{layout}_{n}_{snr:g}_{kind}_{first}_{count}_{_rows_key()}.csv"
+    return EQUAL_RATE_ROWS / f"{method}_{layout}_{n}_{snr:g}_{kind}_{first}_{count}_{_rows_key(method)}.csv"
 
 
 def outcome_chunk(job) -> pd.DataFrame:

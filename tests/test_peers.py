@@ -95,3 +95,31 @@ def test_equal_rate_chunks_are_kept_and_read_back(tmp_path, monkeypatch):
     assert peers.chunk_path(job).is_file() and not list(tmp_path.glob("*.part"))
     assert len(first) == 4 and first["found"].any()
     assert peers.outcome_chunk(job).equals(first)
+
+
+@pytest.mark.parametrize("method, module", [("cpd", "pycpd"), ("clipper", "clipperpy"), ("teaser", "teaserpp_python")])
+def test_a_peers_kept_chunks_are_keyed_by_every_source_it_runs(tmp_path, monkeypatch, method, module):
+    pytest.importorskip(module)
+    from pathlib import Path
+
+    from experiments import peers
+
+    library = Path(mm.__file__).resolve().parent
+    ran = set()
+
+    def profile(frame, event, arg):
+        path = Path(frame.f_code.co_filename)
+        if path.is_relative_to(library):
+            ran.add(path.relative_to(library).parts[0])
+
+    monkeypatch.setattr(peers, "EQUAL_RATE_ROWS", tmp_path)
+    sys.setprofile(profile)
+    try:
+        for kind in ("related", "unrelated"):
+            peers.outcome_chunk((method, "strip", 10, 20, kind, 0, 2))
+    finally:
+        sys.setprofile(None)
+    assert {"simulate.py", "merging.py", "baselines"} <= ran
+    assert ran <= set(peers.PEER_SOURCES)
+    # consensus's own stages are not among them, so a change there keeps the peers' chunks.
+    assert not {"consensus.py", "search.py", "exhaustive.py", "association.py"} & set(peers.PEER_SOURCES)
