@@ -40,7 +40,14 @@ unrelated pairs only:
    related pairs (seeds 100000+k): the evidence for ``consensus.MATCH_NFA``.
    On maps of at most ``HOLDOUT_MAX_LANDMARKS`` landmarks it also merges
    ``--pairs`` held-out unrelated pairs (seeds 600000+k) with the defaults,
-   search included: the false merges of the rule as shipped.
+   search included: the false merges of the rule as shipped;
+5. ``levels``: consensus as shipped (the search included) but with its
+   triangle test accepting at each of ``--levels`` in turn (what-if runs
+   of ``consensus.MATCH_NFA``): false merges on ``--pairs`` held-out
+   unrelated pairs (seeds 600000+k) and the found rate and wrong merges
+   on ``--related`` related pairs of seeds 0+k, the pairs
+   ``experiments.peers --equal-rate`` gives every peer, so the rates
+   compare with the peers' at one false-merge rate.
 """
 
 from __future__ import annotations
@@ -181,6 +188,28 @@ def acceptance_rows(n: int, layout: str, snr: float, seeds, unrelated: bool, sea
     return rows
 
 
+def level_table(n: int, layout: str, snr: float, level: float, related: int, holdout: int) -> dict:
+    """consensus with its triangle test accepting at NFA <= ``level``: false merges on held-out unrelated pairs,
+    found rate and wrong merges on related pairs of seeds 0+k."""
+    counts = {"false_merges": 0, "found": 0, "wrong_merges": 0}
+    with triangle_acceptance(level):
+        for unrelated, base, count in ((True, HOLDOUT_SEED, holdout), (False, 0, related)):
+            for start in range(0, count, BATCH):
+                seeds = [base + k for k in range(start, min(start + BATCH, count))]
+                sc = mm.simulate.make_pairs(n, 0.75, snr, seeds, unrelated=unrelated, layout=layout)
+                err = mm.metrics.map_errors_batch(sc, mm.merge_batch(sc.p, sc.q, sc.sigma))
+                if unrelated:
+                    counts["false_merges"] += int(err["matched"].sum())
+                else:
+                    counts["found"] += int((err["matched"] & err["transform_found"]).sum())
+                    counts["wrong_merges"] += int((err["matched"] & ~err["transform_found"]).sum())
+    lo, hi = wilson(counts["found"], related)
+    return {"n_landmarks": n, "layout": layout, "snr_db": snr, "match_nfa": level, "holdout_pairs": holdout,
+            "false_merges": counts["false_merges"], "false_upper": float(wilson(counts["false_merges"], holdout)[1]),
+            "related_pairs": related, "found_rate": counts["found"] / related, "found_lo": float(lo),
+            "found_hi": float(hi), "wrong_merges": counts["wrong_merges"]}
+
+
 def acceptance_table(n: int, layout: str, snr: float, tuning: int, related: int, holdout: int) -> dict:
     """The triangle test's passes at each of ``NFA_LEVELS`` on unrelated tuning pairs and its found rate on
     related pairs, alone; the default rule's false merges on held-out unrelated pairs (maps of at most
@@ -218,16 +247,18 @@ def main(argv=None) -> None:
     parser.add_argument("--pairs", type=int, default=10_000, help="held-out unrelated pairs per cell")
     parser.add_argument("--bound-pairs", type=int, default=2_000, help="unrelated pairs per cell of the bound check")
     parser.add_argument("--out", default="results/detector/small")
-    parser.add_argument("--checks", nargs="+", choices=("bound", "holdout", "calibrated", "acceptance"),
+    parser.add_argument("--checks", nargs="+", choices=("bound", "holdout", "calibrated", "acceptance", "levels"),
                         default=["bound", "holdout"])
     parser.add_argument("--layouts", nargs="+", choices=("strip", "interleaved"), default=["strip"],
-                        help="layouts of the acceptance check")
+                        help="layouts of the acceptance and levels checks")
     parser.add_argument("--tuning-pairs", type=int, default=10_000, help="unrelated tuning pairs per cell of the "
                         "acceptance check")
     parser.add_argument("--n-jobs", type=int, default=1, help="cells of the acceptance check run in parallel")
     parser.add_argument("--related", type=int, default=500,
                         help="related pairs per cell of the calibrated and acceptance checks")
     parser.add_argument("--quantile", type=float, default=2e-4, help="tuning quantile of the calibrated check")
+    parser.add_argument("--levels", type=float, nargs="+", default=list(NFA_LEVELS[1:]),
+                        help="triangle acceptance levels of the levels check")
     args = parser.parse_args(argv)
     if min(args.pairs, args.bound_pairs) < 1:
         raise SystemExit(f"--pairs and --bound-pairs must be >= 1, got {args.pairs} and {args.bound_pairs}")
@@ -264,6 +295,16 @@ def main(argv=None) -> None:
             delayed(acceptance_table)(n, layout, snr, args.tuning_pairs, args.related, args.pairs)
             for n, layout, snr in jobs))
         for path in save_table(table, out / "acceptance"):
+            print(path)
+    if "levels" in args.checks:
+        if min(args.pairs, args.related) < 1 or args.n_jobs < 1 or not all(0 < v < 1 for v in args.levels):
+            raise SystemExit(f"--pairs, --related and --n-jobs must be >= 1 and --levels in (0, 1), got "
+                             f"{args.pairs}, {args.related}, {args.n_jobs}, {args.levels}")
+        out.mkdir(parents=True, exist_ok=True)
+        jobs = list(itertools.product(args.landmarks, args.layouts, args.snrs, args.levels))
+        table = pd.DataFrame(Parallel(n_jobs=args.n_jobs)(
+            delayed(level_table)(n, layout, snr, level, args.related, args.pairs) for n, layout, snr, level in jobs))
+        for path in save_table(table, out / "levels"):
             print(path)
 
 

@@ -93,3 +93,17 @@ def test_small_maps_calibrated_check_loosens_the_triangle_test_and_restores_it(t
     with small_maps.triangle_acceptance(1.0):
         assert consensus.MATCH_NFA == 1.0
     assert consensus.MATCH_NFA == default
+
+
+def test_small_maps_levels_check_merges_more_at_a_looser_level_and_restores_it():
+    from mapmerge import consensus
+    from experiments import small_maps
+
+    default = consensus.MATCH_NFA
+    strict, loose = (small_maps.level_table(10, "strip", 20.0, level, 12, 3) for level in (1e-4, 1e-2))
+    assert consensus.MATCH_NFA == default
+    assert strict["related_pairs"] == loose["related_pairs"] == 12 and strict["holdout_pairs"] == 3
+    merged = [row["found_rate"] * 12 + row["wrong_merges"] for row in (strict, loose)]
+    # On 10-landmark maps at 20 dB the shipped level accepts few related pairs; 1e-2 accepts more of the same.
+    assert merged[1] > merged[0]
+    assert 0 <= strict["false_merges"] <= 3 and strict["false_upper"] > 0
