@@ -253,9 +253,10 @@ def main(argv=None) -> None:
                         help="layouts of the acceptance and levels checks")
     parser.add_argument("--tuning-pairs", type=int, default=10_000, help="unrelated tuning pairs per cell of the "
                         "acceptance check")
-    parser.add_argument("--n-jobs", type=int, default=1, help="cells of the acceptance check run in parallel")
+    parser.add_argument("--n-jobs", type=int, default=1,
+                        help="cells of the acceptance and levels checks run in parallel")
     parser.add_argument("--related", type=int, default=500,
-                        help="related pairs per cell of the calibrated and acceptance checks")
+                        help="related pairs per cell of the calibrated, acceptance and levels checks")
     parser.add_argument("--quantile", type=float, default=2e-4, help="tuning quantile of the calibrated check")
     parser.add_argument("--levels", type=float, nargs="+", default=list(NFA_LEVELS[1:]),
                         help="triangle acceptance levels of the levels check")
