@@ -116,8 +116,8 @@ PEER_MODULES = {"cpd": "pycpd", "clipper": "clipperpy", "teaser": "teaserpp_pyth
 PEER_BOUNDS = {"cpd": (cpd, "CPD_MIN_INLIERS"), "clipper": (clipper, "CLIPPER_MIN_INLIERS"),
                "teaser": (teaser, "TEASER_MIN_INLIERS")}
 #: ``--equal-rate``: (landmarks per map, SNR in dB) of every cell, per layout.
-EQUAL_RATE_CELLS = {layout: [(n, snr) for n in (10, 20) for snr in (15, 20, 25, 30)] +
-                    [(100, snr) for snr in (10, 15, 20, 30)] for layout in ("strip", "interleaved")}
+EQUAL_RATE_CELLS = {layout: [(n, snr) for n in (10, 20) for snr in (15, 20, 25, 30, 35, 40)] +
+                    [(100, snr) for snr in (10, 15, 20, 25, 30, 35, 40)] for layout in ("strip", "interleaved")}
 #: The false-merge rate every peer is held to in each cell, and the unrelated tuning pairs it is set on.
 EQUAL_RATE = 1e-3
 EQUAL_RATE_TUNING = 1000
