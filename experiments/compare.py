@@ -61,7 +61,7 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from .aggregate import markdown, runs_since, save_table, with_timing  # noqa: E402
-from .figures import STYLE, save_figure  # noqa: E402
+from .figures import STYLE, legend_entries, save_figure  # noqa: E402
 from .intervals import ratio_interval, wilson  # noqa: E402
 from .paper import run_module  # noqa: E402
 
@@ -141,12 +141,7 @@ def success_figure(comp: pd.DataFrame, out: Path, limit: pd.DataFrame | None = N
                 ax.grid(alpha=0.3, lw=0.4)
         n, ov = comp.n_landmarks.iloc[0], comp.overlap.iloc[0]
         fig.suptitle(f"{n} landmarks per map, {ov:.0%} common; τ oracle (dashed) is a limit of the LP")
-        # One legend for the figure: every line of every panel, once.
-        named = {}
-        for ax in axes.ravel():
-            for h, lab in zip(*ax.get_legend_handles_labels()):
-                named.setdefault(lab, h)
-        fig.legend(named.values(), named.keys(), loc="lower center", ncol=3, frameon=False, fontsize=6)
+        fig.legend(*legend_entries(axes), loc="lower center", ncol=3, frameon=False, fontsize=6)
         fig.tight_layout(rect=(0, 0.1, 1, 1))
         return save_figure(fig, out, "success")
 

@@ -76,6 +76,7 @@ import itertools
 import json
 import time
 from pathlib import Path
+from unittest import mock
 
 import numpy as np
 import pandas as pd
@@ -270,23 +271,12 @@ def search_hypotheses(P, Q, sigma: float) -> float:
 
 def _search_best(sc) -> tuple[float, bool]:
     """The search's NFA, and whether its best hypothesis is the true transform, whatever the NFA."""
-    with _constant(mm.search, "SEARCH_NFA", np.inf):
+    with mock.patch.object(mm.search, "SEARCH_NFA", np.inf):
         pairs, _, nfa = mm.search.search_pairs(sc.p, sc.q, sc.sigma)
     if len(pairs) < 3:
         return nfa, False
     al = align_pairs(sc.p[pairs[:, 0]], sc.q[pairs[:, 1]], sc.sigma)
     return nfa, mm.metrics.transform_found(sc, al.theta, al.t)
-
-
-@contextlib.contextmanager
-def _constant(module, name: str, value):
-    """A module constant set to ``value`` for the duration."""
-    old = getattr(module, name)
-    setattr(module, name, value)
-    try:
-        yield
-    finally:
-        setattr(module, name, old)
 
 
 def consensus_outcome(n: int, layout: str, snr: float, seed: int, unrelated: bool) -> tuple:

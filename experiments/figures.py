@@ -54,6 +54,16 @@ def save_figure(fig, out: Path, name: str) -> list[Path]:
     return paths
 
 
+def legend_entries(axes) -> tuple[list, list]:
+    """Every labelled line of every panel, once (the first panel's first): handles and labels for one legend
+    of the whole figure."""
+    named = {}
+    for ax in np.ravel(axes):
+        for handle, label in zip(*ax.get_legend_handles_labels()):
+            named.setdefault(label, handle)
+    return list(named.values()), list(named)
+
+
 #: The calibrated τ rule marked on the Fig. 3 curves.
 CALIBRATED_RULE = "chi2:0.01"
 

@@ -69,6 +69,7 @@ import itertools
 import os
 import time
 from multiprocessing import Pool
+from unittest import mock
 from pathlib import Path
 
 # CLIPPER and TEASER++ use OpenMP; the two worker processes are the parallelism.
@@ -386,21 +387,14 @@ def calibrate(out: Path, processes: int = 2) -> pd.DataFrame:
     return df
 
 
-@contextlib.contextmanager
 def accepting_every_inlier_set(method: str):
     """A peer made to accept every inlier set of at least ``result.MIN_MATCHED_LANDMARKS`` pairs for the
     duration, so that its bound can be applied afterwards to the recorded inlier counts; other methods as
     they are."""
     if method not in PEER_BOUNDS:
-        yield
-        return
+        return contextlib.nullcontext()
     module, name = PEER_BOUNDS[method]
-    shipped = getattr(module, name)
-    setattr(module, name, {size: 0 for size in shipped})
-    try:
-        yield
-    finally:
-        setattr(module, name, shipped)
+    return mock.patch.object(module, name, {size: 0 for size in getattr(module, name)})
 
 
 @functools.cache
@@ -512,8 +506,8 @@ def equal_rate(out: Path, processes: int = 2, methods=None, pairs: int = EQUAL_R
             frames.append(rows.assign(method=job[0], layout=job[1], n_landmarks=job[2], snr_db=float(job[3]),
                                       kind=job[4]))
             print(f"{k + 1}/{len(jobs)} {job[:5]} seeds {job[5]}+{job[6]}", flush=True)
-        oracle = dict(zip(cells, pool.starmap(oracle_found, [(*cell, pairs) for cell in cells])))
-    oracle = {(layout, n, float(snr)): found / pairs for (layout, n, snr), found in oracle.items()}
+        found = pool.starmap(oracle_found, [(*cell, pairs) for cell in cells])
+    oracle = {(layout, n, float(snr)): k / pairs for (layout, n, snr), k in zip(cells, found)}
     rows = pd.concat(frames, ignore_index=True)
     rows["method"] = pd.Categorical(rows["method"], methods)
     df = equal_rate_table(rows, oracle)
@@ -532,7 +526,7 @@ def equal_rate_figure(df: pd.DataFrame, out: Path) -> list[Path]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from experiments.figures import STYLE, save_figure
+    from experiments.figures import STYLE, legend_entries, save_figure
 
     layouts, sizes = list(dict.fromkeys(df["layout"])), sorted(df["n_landmarks"].unique())
     methods = list(dict.fromkeys(df["method"].astype(str)))
@@ -560,11 +554,7 @@ def equal_rate_figure(df: pd.DataFrame, out: Path) -> list[Path]:
                 ax.set_xlabel("SNR (dB)")
             if col == 0:
                 ax.set_ylabel("transform found")
-        named = {}
-        for ax in axes.ravel():
-            for h, lab in zip(*ax.get_legend_handles_labels()):
-                named.setdefault(lab, h)
-        fig.legend(named.values(), named.keys(), loc="lower center", ncol=3, frameon=False, fontsize=6)
+        fig.legend(*legend_entries(axes), loc="lower center", ncol=3, frameon=False, fontsize=6)
         fig.suptitle(f"At most {EQUAL_RATE:g} false merges per cell, {OVERLAP:.0%} common landmarks")
         fig.tight_layout(rect=(0, 0.08, 1, 1))
         return save_figure(fig, out, "equal_rate")

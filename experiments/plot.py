@@ -41,7 +41,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from .figures import CALIBRATED_RULE, STYLE, fig3, related_cells  # noqa: E402
+from .figures import CALIBRATED_RULE, STYLE, fig3, legend_entries, related_cells  # noqa: E402
 from .results import load, select, varying  # noqa: E402
 
 #: Axis labels, with units, of the usual columns (others are labelled by name).
@@ -221,12 +221,7 @@ def line_figure(rows: pd.DataFrame, x: str, y: str, hue: str | None, col: str | 
     if band:
         notes.append("shaded: 95 % confidence interval")
     fig.suptitle("; ".join(notes), fontsize=7)
-    handles, labels = axes[0, 0].get_legend_handles_labels()
-    for ax in axes.flat:  # a hue value absent from the first panel still gets its entry
-        for hd, lb in zip(*ax.get_legend_handles_labels()):
-            if lb not in labels:
-                handles.append(hd)
-                labels.append(lb)
+    handles, labels = legend_entries(axes)  # a hue value absent from the first panel still gets its entry
     fig.tight_layout()
     if hue is not None:
         fig.legend(handles, labels, title=label(hue), loc="upper left", bbox_to_anchor=(1.0, 0.95), frameon=False)

@@ -53,9 +53,9 @@ unrelated pairs only:
 from __future__ import annotations
 
 import argparse
-import contextlib
 import itertools
 from pathlib import Path
+from unittest import mock
 
 import numpy as np
 import pandas as pd
@@ -126,16 +126,10 @@ def holdout_table(n: int, snr: float, pairs: int, stages: pd.DataFrame, out: Pat
     return row
 
 
-@contextlib.contextmanager
 def triangle_acceptance(nfa: float):
     """consensus's triangle test accepting at NFA <= nfa (``consensus.MATCH_NFA``, read at call time) for the
     duration: what-if runs of a threshold, not a setting of the library."""
-    default = mm.consensus.MATCH_NFA
-    mm.consensus.MATCH_NFA = nfa
-    try:
-        yield
-    finally:
-        mm.consensus.MATCH_NFA = default
+    return mock.patch.object(mm.consensus, "MATCH_NFA", nfa)
 
 
 def merge_outcome(n: int, snr: float, seed: int, unrelated: bool) -> tuple[bool, bool, float, int]:
