@@ -71,10 +71,15 @@ HOUGH_WIDTH = 3.0
 GROW_FACTOR = 3.0
 #: A match is accepted when its number of false alarms (``match_nfa``: the
 #: expected number of equally good chance matches among the hypotheses
-#: tried) is at most this, the search's ``SEARCH_NFA`` too: on 10,000
-#: unrelated tuning pairs per size, layout and SNR at most one passes it
-#: (the bound is tight on 100-landmark maps, loose on 10-20; docs/tuning.md).
-MATCH_NFA = 1e-4
+#: tried) is at most a level set by the smaller map's landmark count:
+#: ``{most landmarks: level}``, the entry of the fewest landmarks that still
+#: covers the map (``match_level``). The NFA bounds chance tightly on
+#: 100-landmark maps and loosely on small ones, so a level chance reaches
+#: at most about once in 1,000 unrelated pairs differs by size: the loosest
+#: power of ten whose 95 % upper bound of the chance pass rate, on 10,000
+#: unrelated tuning pairs per size, layout and SNR, stays below 1e-3
+#: (docs/tuning.md). The search accepts at ``search.SEARCH_NFA``.
+MATCH_NFA = {10: 1e-2, 30: 1e-3, np.inf: 1e-4}
 #: The χ² quantile of the triangle gate: 3 vertices (6 coordinates).
 GATE_6 = float(chdtri(6, GATE_P))
 #: Hypotheses (most inliers first) refitted on their inliers and recounted.
@@ -385,6 +390,12 @@ def _hough_pool(cp, cq, scores, sigma):
     idx = idx[np.all(np.abs(cell - best) <= 1, axis=1)]
     return idx[np.argsort(-scores[idx], kind="stable")][:MAX_POOL]
 
+def match_level(n_landmarks: int) -> float:
+    """The NFA at most which consensus accepts a triangle match between maps whose smaller holds
+    ``n_landmarks`` landmarks (``MATCH_NFA``)."""
+    return MATCH_NFA[min(most for most in MATCH_NFA if most >= n_landmarks)]
+
+
 def match_nfa(P, Q, alignment, pairs, n_hypotheses: int, sigma: float, *, cov_p=None, cov_q=None,
               hull=None) -> float:
     """Number of false alarms of a match, a contrario (Moisan & Stival 2004).
@@ -397,7 +408,8 @@ def match_nfa(P, Q, alignment, pairs, n_hypotheses: int, sigma: float, *, cov_p=
     ``C(N, k - 3) α(d²_(k))^(k-3)`` among the N landmarks inside the hull;
     with ``n_hypotheses`` hypotheses tried, NFA is the smallest
     ``n_hypotheses · C(N, k - 3) · α(d²_(k))^(k-3)`` over k. A match with
-    NFA <= ``MATCH_NFA`` is expected to arise by chance at most that often.
+    NFA <= ε is expected to arise by chance at most ε times per map pair
+    (consensus accepts at ε = ``match_level`` of the maps' size).
     ``hull``: P's convex hull, when the caller has it. One map pair's
     ``match_nfa_batch``.
     """
@@ -530,7 +542,7 @@ def _verified_pairs(P, Q, sigma, trial, pairs, n_hypotheses, cov_p, cov_q, hulls
 
     Associate under the correspondences' fit (``ASSOCIATION_ROUNDS`` times),
     then at the mixture's maximum-likelihood transform, and accept a map
-    pair's associations only if its ``match_nfa`` is at most ``MATCH_NFA``.
+    pair's associations only if its ``match_nfa`` is at most ``match_level`` of its maps.
     Returns (trial, pairs, contested) of the accepted associations.
     """
     hulls = {b: (hulls_p[b], hulls_q[b]) for b in np.flatnonzero(np.bincount(trial, minlength=len(P)) >= 3)}
@@ -546,7 +558,7 @@ def _verified_pairs(P, Q, sigma, trial, pairs, n_hypotheses, cov_p, cov_q, hulls
         return trial[:0], kept, contested
     nfa = match_nfa_batch(P[active], Q[active], theta, t, cov, local, kept, n_hypotheses[active], sigma[active],
                           covariance_rows(cov_p, active), covariance_rows(cov_q, active), [hulls[b][0] for b in active])
-    accepted = (nfa <= MATCH_NFA)[local]
+    accepted = (nfa <= match_level(min(P.shape[1], Q.shape[1])))[local]
     return active[local][accepted], kept[accepted], contested[accepted]
 
 

@@ -406,8 +406,8 @@ def residual_match(P, Q, result: MergeResult, sigma=None, tau=DEFAULT_TAU, cov_p
     unpaired are those only one map holds (and common ones the noise hid),
     and chance seldom gives them a significant match of their own:
     ``consensus`` accepts a match only when its expected number of chance
-    equivalents is below ``consensus.MATCH_NFA`` (``search.SEARCH_NFA`` for
-    its global search). A second match means the
+    equivalents is below ``consensus.match_level`` of the leftover maps'
+    size (``search.SEARCH_NFA`` for its global search). A second match means the
     maps are not one rigid body: drift bent one of them, so part of their
     overlap moved rigidly against the rest. The merge then aligned the
     larger part, and the common landmarks of the other part appear twice in

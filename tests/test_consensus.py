@@ -125,3 +125,24 @@ def test_match_nfa_batch_is_each_map_pair_tested_alone():
     alone = [match_nfa(sc.p, sc.q, al, f, h, sc.sigma) for sc, al, f, h in zip(scs, known, found, n_hyp)]
     np.testing.assert_allclose(nfa, alone, rtol=1e-12)
     assert nfa[0] < 1e-6 and nfa[1] > 1e-3  # the related pair is significant, the unrelated one is not
+
+
+def test_match_level_is_looser_on_smaller_maps():
+    from mapmerge.consensus import match_level
+
+    assert [match_level(n) for n in (3, 10, 11, 30, 31, 100, 10**6)] == [1e-2, 1e-2, 1e-3, 1e-3, 1e-4, 1e-4, 1e-4]
+
+
+def test_ten_landmark_maps_at_20_db_merge_at_their_level_without_false_merges(monkeypatch):
+    """A small version of the small-map target: the looser level finds more, and chance still passes rarely."""
+    from mapmerge import consensus
+
+    def found(seeds, unrelated):
+        sc = mm.simulate.make_pairs(10, 0.75, 20.0, seeds, unrelated=unrelated)
+        err = metrics.map_errors_batch(sc, mm.merge_batch(sc.p, sc.q, sc.sigma))
+        return int(err["matched"].sum()) if unrelated else int((err["matched"] & err["transform_found"]).sum())
+
+    assert found(range(600_000, 600_300), unrelated=True) == 0
+    shipped = found(range(100), unrelated=False)
+    monkeypatch.setattr(consensus, "MATCH_NFA", {np.inf: 1e-4})
+    assert shipped >= 25 and shipped > found(range(100), unrelated=False) + 15

@@ -65,6 +65,7 @@ def test_small_maps_acceptance_check_records_the_triangle_test_of_each_pair(tmp_
     assert (row["tuning_pairs"], row["related_pairs"], row["holdout_pairs"]) == (6, 4, 3)
     passes = [row[f"tuning_pass_{level:g}"] for level in small_maps.NFA_LEVELS]
     assert passes == sorted(passes) and 0 <= row["holdout_false_merges"] <= 3
+    assert row["match_nfa"] == mm.consensus.match_level(10) and row["tuning_pass_shipped"] in passes
     for level in small_maps.NFA_LEVELS:
         assert 0 <= row[f"found_{level:g}"] + row[f"wrong_{level:g}"] <= 1
     # The batch's recorded NFA of a pair is the one the detector records when it merges that pair alone.
@@ -91,7 +92,7 @@ def test_small_maps_calibrated_check_loosens_the_triangle_test_and_restores_it(t
     cached = list(tmp_path.glob("calibrated_10_30_0.5_*.csv"))
     assert len(cached) == 1 and small_maps.calibrated_table(10, 30.0, 3, 4, 0.5, tuning, tmp_path) == row
     with small_maps.triangle_acceptance(1.0):
-        assert consensus.MATCH_NFA == 1.0
+        assert consensus.match_level(10) == consensus.match_level(1000) == 1.0
     assert consensus.MATCH_NFA == default
 
 
