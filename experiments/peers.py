@@ -194,7 +194,8 @@ def detector_limits() -> pd.DataFrame:
 
 
 def compare(out: Path, processes: int = 2, layout: str = "strip", methods=None, pairs: int = PAIRS) -> pd.DataFrame:
-    """``methods`` (default: every available one) on a layout's cells; updates peers.csv / peers.md."""
+    """``methods`` (default: every available one) on a layout's cells; updates their rows of peers.csv and
+    peers.md, keeping the other methods' rows."""
     if layout not in CELLS:
         raise ValueError(f"layout must be one of {list(CELLS)}, got {layout!r}")
     methods = list(methods or available_methods())
@@ -231,7 +232,7 @@ def compare(out: Path, processes: int = 2, layout: str = "strip", methods=None, 
     df["snr_db"] = df["snr_db"].astype(float)
     df = df.merge(detector_limits(), on=["layout", "n_landmarks", "snr_db"], how="left")
     out.mkdir(parents=True, exist_ok=True)
-    df = pd.concat([kept_rows(out / "peers.csv", layout), df], ignore_index=True)
+    df = pd.concat([kept_rows(out / "peers.csv", layout, methods), df], ignore_index=True)
     order = [m for m in available_methods() + sorted(set(df["method"])) if m in set(df["method"])]
     df["method"] = pd.Categorical(df["method"], list(dict.fromkeys(order)))
     df = df.sort_values(["layout", "n_landmarks", "snr_db", "method"]).reset_index(drop=True)
@@ -240,8 +241,8 @@ def compare(out: Path, processes: int = 2, layout: str = "strip", methods=None, 
     return df
 
 
-def kept_rows(path: Path, layout: str) -> pd.DataFrame:
-    """The rows of an earlier peers.csv of the layouts other than ``layout`` (rows without one: strip)."""
+def kept_rows(path: Path, layout: str, methods) -> pd.DataFrame:
+    """The rows of an earlier peers.csv but those of ``methods`` on ``layout`` (rows without one: strip)."""
     if not path.exists():
         return pd.DataFrame()
     old = pd.read_csv(path)
@@ -249,7 +250,7 @@ def kept_rows(path: Path, layout: str) -> pd.DataFrame:
         old.insert(1, "layout", "strip")
     if "oracle_pairs" not in old:
         old["oracle_pairs"] = PAIRS
-    return old[old["layout"] != layout]
+    return old[(old["layout"] != layout) | ~old["method"].isin(methods)]
 
 
 def write_markdown(df: pd.DataFrame, path: Path) -> None:

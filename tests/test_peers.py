@@ -86,6 +86,19 @@ def test_equal_rate_bound_lets_through_at_most_its_share_of_tuning_pairs():
     assert row.shipped_false_merges == sum(k >= shipped for k in [8, 4, 0, 7, 3])
 
 
+def test_a_rerun_of_some_methods_keeps_the_other_methods_rows(tmp_path):
+    import pandas as pd
+
+    from experiments import peers
+
+    path = tmp_path / "peers.csv"
+    pd.DataFrame({"method": ["consensus", "cpd", "consensus", "cpd"],
+                  "layout": ["strip", "strip", "interleaved", "interleaved"], "n_landmarks": 10}).to_csv(path, index=False)
+    kept = peers.kept_rows(path, "strip", ["consensus"])
+    assert sorted(zip(kept["method"], kept["layout"])) == [("consensus", "interleaved"), ("cpd", "interleaved"),
+                                                           ("cpd", "strip")]
+
+
 def test_equal_rate_chunks_are_kept_and_read_back(tmp_path, monkeypatch):
     from experiments import peers
 
