@@ -1,4 +1,5 @@
-"""Shared pieces of the outside peers (CPD, CLIPPER, TEASER++): putative associations and acceptance.
+"""Shared pieces of the outside peers (CPD, CLIPPER, TEASER++): putative associations, acceptance, and a
+random generator per map pair for those that draw (CLIPPER, astroalign).
 
 Acceptance: none of the peers has a test of its own, so each accepts a
 merge when its inlier count reaches a bound per map size (``min_inliers``),
@@ -17,6 +18,8 @@ their own map) are closest: a gating of ours, not the authors'.
 """
 
 from __future__ import annotations
+
+import hashlib
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -38,15 +41,27 @@ def rotate_about_centroid(X: np.ndarray, angle: float) -> np.ndarray:
     return (X - mean) @ np.array([[c, s], [-s, c]]) + mean
 
 
-def merge_by_inliers(method: str, inliers, bounds: dict[int, int], P, Q, sigma, tri_p, tri_q) -> MergeBatch:
+def pair_generators(P, Q, rng=None) -> list[np.random.Generator]:
+    """A generator for each of the B map pairs (P, Q: (B, n, 2)): ``rng`` (seed or Generator), one shared
+    by the batch, or without it one per pair seeded by its two maps' bytes, so that the same maps give the
+    same draws in any batch and on any worker."""
+    if rng is not None:
+        return [np.random.default_rng(rng)] * len(P)
+    return [np.random.default_rng(np.frombuffer(hashlib.sha256(p.tobytes() + q.tobytes()).digest(), dtype=np.uint32))
+            for p, q in zip(P, Q)]
+
+
+def merge_by_inliers(method: str, inliers, bounds: dict[int, int], P, Q, sigma, tri_p, tri_q,
+                     gens=None) -> MergeBatch:
     """A peer's merge of B map pairs: ``inliers(P_b, Q_b, sigma_b)`` gives its one-to-one inlier set,
     accepted when it holds at least ``min_inliers(bounds, ...)`` (and ``MIN_MATCHED_LANDMARKS``) pairs,
-    else no pair (an honest "no match"); the transform is ``build_batch``'s closed-form fit on it."""
+    else no pair (an honest "no match"); the transform is ``build_batch``'s closed-form fit on it.
+    ``gens``: a peer that draws gets each pair's generator (``pair_generators``) as a fourth argument."""
     empty = (np.empty((0, 2), dtype=np.intp), np.empty(0), np.empty(0, bool))
     need = max(MIN_MATCHED_LANDMARKS, min_inliers(bounds, P.shape[1], Q.shape[1]))
     parts = []
     for b in range(len(P)):
-        pairs = inliers(P[b], Q[b], float(sigma[b]))
+        pairs = inliers(P[b], Q[b], float(sigma[b]), *(() if gens is None else (gens[b],)))
         parts.append((*empty, pairs if len(pairs) >= need else np.empty((0, 2), dtype=np.intp), 0))
     return build_from_parts(method=method, P=P, Q=Q, sigma=sigma, log_tau=np.full(len(P), np.nan),
                             tri_p=tri_p, tri_q=tri_q, parts=parts)

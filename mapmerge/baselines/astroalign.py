@@ -18,7 +18,6 @@ maps' bytes is used, so the same maps give the same answer.
 
 from __future__ import annotations
 
-import hashlib
 import threading
 from contextlib import contextmanager
 
@@ -26,6 +25,7 @@ import numpy as np
 
 from ..result import MergeBatch, build_from_parts
 from ..triangles import TriangleBatch
+from .associations import pair_generators
 
 #: astroalign's pixel tolerance (astroalign.PIXEL_TOL) is set to this many σ.
 ASTROALIGN_TOL_SIGMAS = 3.0
@@ -61,9 +61,7 @@ def astroalign_pairs(P: np.ndarray, Q: np.ndarray, sigma: float, rng: np.random.
 
 def merge(P, Q, sigma, tri_p: TriangleBatch, tri_q: TriangleBatch, rng=None) -> MergeBatch:
     """astroalign on B map pairs; ``rng`` (seed or Generator) drives its RANSAC."""
-    gens = ([np.random.default_rng(rng)] * len(P) if rng is not None else
-            [np.random.default_rng(np.frombuffer(hashlib.sha256(P[b].tobytes() + Q[b].tobytes()).digest(),
-                                                 dtype=np.uint32)) for b in range(len(P))])
+    gens = pair_generators(P, Q, rng)
     empty = (np.empty((0, 2), dtype=np.intp), np.empty(0), np.empty(0, bool))
     parts = [(*empty, astroalign_pairs(P[b], Q[b], float(sigma[b]), gens[b]), 0) for b in range(len(P))]
     return build_from_parts(method="astroalign", P=P, Q=Q, sigma=sigma, log_tau=np.full(len(P), np.nan),
