@@ -2,7 +2,7 @@
 
     python -m experiments.peers [--layout strip|interleaved] [--methods M ...] [--processes 1]
     python -m experiments.peers --scaling [--sizes 100 1000 10000] [--time-limit 120]   # time per merge
-    python -m experiments.peers --calibrate [--out results/peers]   # the peers' acceptance thresholds
+    python -m experiments.peers --calibrate [--methods M ...] [--out results/peers]   # acceptance thresholds
     python -m experiments.peers --equal-rate [--pairs 1000]   # every method at one false-merge rate per cell
 
 Every method sees the same pairs: ``make_pair(n, 0.75, snr, rng=seed,
@@ -138,6 +138,18 @@ EQUAL_RATE_ROWS = Path("outputs") / "peers" / "equal_rate"
 PEER_SOURCES = ("__init__.py", "_validation.py", "alignment.py", "assignment.py", "baselines", "combining.py",
                 "matching.py", "merging.py", "metrics.py", "neighbours.py", "result.py", "simulate.py",
                 "triangles.py")
+#: Of ``baselines``, the modules every peer runs; beside them a peer runs only its own module.
+SHARED_BASELINE_SOURCES = ("__init__.py", "associations.py")
+
+
+def peer_sources(method: str) -> list[Path]:
+    """The library files a peer's chunk runs, relative to the library (``PEER_SOURCES``, of ``baselines``
+    only the shared modules and the peer's own)."""
+    library = Path(mm.__file__).resolve().parent
+    own = (*SHARED_BASELINE_SOURCES, f"{method}.py")
+    return [f.relative_to(library) for f in sorted(library.rglob("*.py"))
+            if f.relative_to(library).parts[0] in PEER_SOURCES
+            and (f.relative_to(library).parts[0] != "baselines" or f.name in own)]
 
 
 def available_methods() -> list[str]:
@@ -375,13 +387,19 @@ def calibration_scores(job) -> dict:
             "threshold_share": need}
 
 
-def calibrate(out: Path, processes: int = 2) -> pd.DataFrame:
-    """The peers' acceptance thresholds (see the module docstring); writes calibration.csv / .md."""
-    peers = [p for p in PEER_PAIRS if importlib.util.find_spec(PEER_MODULES[p])]
+def calibrate(out: Path, processes: int = 2, methods=None) -> pd.DataFrame:
+    """The acceptance thresholds of ``methods`` (default: every installed peer; see the module docstring);
+    writes calibration.csv / .md, keeping the other peers' rows."""
+    peers = [p for p in PEER_PAIRS if importlib.util.find_spec(PEER_MODULES[p]) and (not methods or p in methods)]
     jobs = [(p, n) for p in peers for n in CALIBRATION_PAIRS]
     jobs.sort(key=lambda j: -j[1])
     with Pool(processes) as pool:
         df = pd.DataFrame(pool.map(calibration_scores, jobs, chunksize=1))
+    if (out / "calibration.csv").is_file():
+        old = pd.read_csv(out / "calibration.csv")
+        order = {peer: k for k, peer in enumerate(PEER_PAIRS)}
+        df = pd.concat([old[~old["peer"].isin(peers)], df]).sort_values(
+            ["n_landmarks", "peer"], ascending=[False, True], key=lambda c: c.map(order) if c.name == "peer" else c)
     out.mkdir(parents=True, exist_ok=True)
     df.to_csv(out / "calibration.csv", index=False, float_format="%.4g")
     (out / "calibration.md").write_text(df.to_markdown(index=False, floatfmt=".3g") + "\n")
@@ -401,15 +419,14 @@ def accepting_every_inlier_set(method: str):
 @functools.cache
 def _rows_key(method: str) -> str:
     """The digest that keys ``--equal-rate``'s kept chunks of ``method``: the library sources it runs (a
-    peer: ``PEER_SOURCES``; consensus: all of them) and the functions that compute a chunk (not the tables
+    peer: ``peer_sources``; consensus: all of them) and the functions that compute a chunk (not the tables
     drawn from them)."""
     library = Path(mm.__file__).resolve().parent
-    files = sorted(library.rglob("*.py"))
-    if method in PEER_BOUNDS:
-        files = [f for f in files if f.relative_to(library).parts[0] in PEER_SOURCES]
+    files = (peer_sources(method) if method in PEER_BOUNDS else
+             [f.relative_to(library) for f in sorted(library.rglob("*.py"))])
     digest = hashlib.sha256()
     for path in files:
-        digest.update(path.relative_to(library).as_posix().encode() + path.read_bytes())
+        digest.update(path.as_posix().encode() + (library / path).read_bytes())
     for function in (outcome_chunk, accepting_every_inlier_set):
         digest.update(inspect.getsource(function).encode())
     return digest.hexdigest()[:12]
@@ -613,7 +630,7 @@ def main(argv=None) -> None:
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     if args.calibrate:
-        df = calibrate(args.out, args.processes)
+        df = calibrate(args.out, args.processes, args.methods)
     elif args.equal_rate:
         df = equal_rate(args.out, args.processes, args.methods, args.pairs or EQUAL_RATE_PAIRS, args.landmarks)
     elif args.scaling:

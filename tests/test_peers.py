@@ -123,7 +123,7 @@ def test_a_peers_kept_chunks_are_keyed_by_every_source_it_runs(tmp_path, monkeyp
     def profile(frame, event, arg):
         path = Path(frame.f_code.co_filename)
         if path.is_relative_to(library):
-            ran.add(path.relative_to(library).parts[0])
+            ran.add(path.relative_to(library))
 
     monkeypatch.setattr(peers, "EQUAL_RATE_ROWS", tmp_path)
     sys.setprofile(profile)
@@ -132,7 +132,36 @@ def test_a_peers_kept_chunks_are_keyed_by_every_source_it_runs(tmp_path, monkeyp
             peers.outcome_chunk((method, "strip", 10, 20, kind, 0, 2))
     finally:
         sys.setprofile(None)
-    assert {"simulate.py", "merging.py", "baselines"} <= ran
-    assert ran <= set(peers.PEER_SOURCES)
+    assert {Path("simulate.py"), Path("merging.py"), Path("baselines") / f"{method}.py"} <= ran
+    assert ran <= set(peers.peer_sources(method))
     # consensus's own stages are not among them, so a change there keeps the peers' chunks.
     assert not {"consensus.py", "search.py", "exhaustive.py", "association.py"} & set(peers.PEER_SOURCES)
+
+
+def test_clipper_draws_its_start_from_the_merge_generator():
+    pytest.importorskip("clipperpy")
+    from mapmerge.baselines import clipper
+
+    # CLIPPER's own start (std::random_device) moved 9 of 100 such inlier counts between two runs.
+    scenes = [mm.simulate.make_pair(10, 0.75, 20.0, rng=seed, unrelated=True) for seed in range(40)]
+    first = [clipper.clipper_pairs(sc.p, sc.q, sc.sigma) for sc in scenes]
+    assert all(np.array_equal(a, clipper.clipper_pairs(sc.p, sc.q, sc.sigma)) for a, sc in zip(first, scenes))
+    # A merge of several pairs gives each pair what a merge of it alone gives.
+    P, Q, sigma = (np.stack([getattr(sc, k) for sc in scenes[:3]]) for k in ("p", "q", "sigma"))
+    batch = mm.merge_batch(P, Q, sigma, method="clipper")
+    for b, sc in enumerate(scenes[:3]):
+        np.testing.assert_array_equal(batch.result(b).pairs, mm.merge_maps(sc.p, sc.q, sc.sigma, method="clipper").pairs)
+
+
+def test_calibrating_one_peer_keeps_the_other_peers_rows(tmp_path, monkeypatch):
+    pytest.importorskip("clipperpy")
+    import pandas as pd
+
+    from experiments import peers
+
+    pd.DataFrame({"peer": ["cpd", "clipper", "cpd"], "n_landmarks": [100, 10, 10], "pairs": 9,
+                  "max_share": 0.9}).to_csv(tmp_path / "calibration.csv", index=False)
+    monkeypatch.setattr(peers, "CALIBRATION_PAIRS", {10: 4})
+    df = peers.calibrate(tmp_path, 1, ["clipper"])
+    assert list(zip(df["peer"], df["n_landmarks"], df["pairs"])) == [("cpd", 100, 9), ("cpd", 10, 9), ("clipper", 10, 4)]
+    assert pd.read_csv(tmp_path / "calibration.csv")["peer"].tolist() == ["cpd", "cpd", "clipper"]
