@@ -79,8 +79,8 @@ LEVELS = (1e-1, 1e-2, 1e-3)
 #: Bounds on the triangle test's NFA at which the ``acceptance`` check counts passes.
 NFA_LEVELS = (1e-6, 1e-4, 1e-3, 1e-2)
 #: The ``acceptance`` check merges held-out pairs in full (the search included) on maps of at most this
-#: many landmarks, those that ``consensus.MATCH_NFA`` gives a level above 1e-4 (the bound is loose there
-#: and a merge fast); larger maps get the tuning count only.
+#: many landmarks, where the bound is loose and a merge fast (up to the first size ``consensus.MATCH_NFA``
+#: holds at 1e-4); larger maps get the tuning count only.
 HOLDOUT_MAX_LANDMARKS = 30
 #: Where the ``acceptance`` check keeps each cell's pairs (20,000 rows a cell: not committed).
 ROWS = Path("outputs") / "small_maps"

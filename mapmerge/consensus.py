@@ -79,7 +79,7 @@ GROW_FACTOR = 3.0
 #: power of ten whose 95 % upper bound of the chance pass rate, on 10,000
 #: unrelated tuning pairs per size, layout and SNR, stays below 1e-3
 #: (docs/tuning.md). The search accepts at ``search.SEARCH_NFA``.
-MATCH_NFA = {10: 1e-2, 30: 1e-3, np.inf: 1e-4}
+MATCH_NFA = {10: 1e-2, 20: 1e-3, np.inf: 1e-4}
 #: The χ² quantile of the triangle gate: 3 vertices (6 coordinates).
 GATE_6 = float(chdtri(6, GATE_P))
 #: Hypotheses (most inliers first) refitted on their inliers and recounted.

@@ -130,7 +130,7 @@ def test_match_nfa_batch_is_each_map_pair_tested_alone():
 def test_match_level_is_looser_on_smaller_maps():
     from mapmerge.consensus import match_level
 
-    assert [match_level(n) for n in (3, 10, 11, 30, 31, 100, 10**6)] == [1e-2, 1e-2, 1e-3, 1e-3, 1e-4, 1e-4, 1e-4]
+    assert [match_level(n) for n in (3, 10, 11, 20, 21, 100, 10**6)] == [1e-2, 1e-2, 1e-3, 1e-3, 1e-4, 1e-4, 1e-4]
 
 
 def test_ten_landmark_maps_at_20_db_merge_at_their_level_without_false_merges(monkeypatch):
