@@ -146,3 +146,24 @@ def test_ten_landmark_maps_at_20_db_merge_at_their_level_without_false_merges(mo
     shipped = found(range(100), unrelated=False)
     monkeypatch.setattr(consensus, "MATCH_NFA", {np.inf: 1e-4})
     assert shipped >= 25 and shipped > found(range(100), unrelated=False) + 15
+
+
+def test_each_size_level_is_the_loosest_the_committed_tuning_pairs_allow():
+    """results/detector/small/acceptance.csv (10,000 unrelated tuning pairs per cell, the triangle test
+    alone) supports ``MATCH_NFA``: at each size's level every cell's 95 % upper bound of the chance pass
+    rate is within 1e-3, and at ten times the level some cell's is not."""
+    from pathlib import Path
+
+    import pandas as pd
+
+    from experiments.intervals import wilson
+    from mapmerge.consensus import match_level
+
+    table = pd.read_csv(Path(__file__).resolve().parents[1] / "results/detector/small/acceptance.csv")
+    assert set(table.n_landmarks) >= {5, 10, 15, 20, 30, 50, 100}
+    for n, cells in table.groupby("n_landmarks"):
+        level = match_level(n)
+        assert (cells.match_nfa == level).all()
+        assert wilson(cells[f"tuning_pass_{level:g}"], cells.tuning_pairs)[1].max() <= 1e-3
+        if f"tuning_pass_{10 * level:g}" in cells:
+            assert wilson(cells[f"tuning_pass_{10 * level:g}"], cells.tuning_pairs)[1].max() > 1e-3
