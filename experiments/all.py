@@ -142,6 +142,9 @@ STEPS: tuple[Step, ...] = (
     Step("peers_scaling", ("experiments.peers", "--scaling"), ("results/peers",), PEERS),
     # Each peer's bound set per cell (1,000 tuning pairs) so that every method is at one false-merge rate.
     Step("peers_equal_rate", ("experiments.peers", "--equal-rate"), ("results/peers",), PEERS),
+    # consensus beside the best peer at one false-merge rate and the detector, per small-map cell.
+    Step("small_reference", ("experiments.small_maps", "--checks", "reference", "--out", "results/detector/small"),
+         ("results/detector/small",)),
     Step("docs", ("experiments.docs",), ()),
 )
 

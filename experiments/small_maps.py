@@ -48,7 +48,14 @@ unrelated pairs only:
    unrelated pairs (seeds 600000+k) and the found rate and wrong merges
    on ``--related`` related pairs of seeds 0+k, the pairs
    ``experiments.peers --equal-rate`` gives every peer, so the rates
-   compare with the peers' at one false-merge rate.
+   compare with the peers' at one false-merge rate;
+6. ``reference``: no merging. Per small-map cell (up to 20 landmarks) of
+   ``results/peers/equal_rate.csv`` (``--peers``), consensus beside the
+   best outside peer at one false-merge rate and the exhaustive detector
+   at 1e-3 (``limit.csv`` in ``--out``, strip layout, on its own pairs,
+   with consensus's find on them): found rates with their intervals, the
+   ratios, and whether consensus is ahead, level (intervals overlap) or
+   behind the peer.
 """
 
 from __future__ import annotations
@@ -167,6 +174,32 @@ def calibrated_table(n: int, snr: float, related: int, pairs: int, quantile: flo
             "false_merges": int(hold.merged.sum())}
 
 
+def reference_table(equal_rate: pd.DataFrame, limit: pd.DataFrame) -> pd.DataFrame:
+    """consensus against the best peer at one false-merge rate and the detector at 1e-3, per small-map cell."""
+    rows = []
+    small = equal_rate[equal_rate.n_landmarks <= 20]
+    for (layout, n, snr), cell in small.groupby(["layout", "n_landmarks", "snr_db"]):
+        ours = cell[cell.method == "consensus"].iloc[0]
+        peers = cell[(cell.method != "consensus") & (cell.pairs > 0)]
+        best = peers.loc[peers.found_rate.idxmax()]
+        detector = limit[(limit.layout == layout) & (limit.n_landmarks == n) & (limit.snr_db == snr)]
+        verdict = ("ahead" if ours.found_lo > best.found_hi else "behind" if ours.found_hi < best.found_lo
+                   else "level")
+        rows.append({"layout": layout, "n_landmarks": n, "snr_db": snr, "pairs": int(ours.pairs),
+                     "consensus_found": ours.found_rate, "consensus_lo": ours.found_lo,
+                     "consensus_hi": ours.found_hi, "consensus_false": int(ours.false_merges),
+                     "best_peer": best.method, "peer_pairs": int(best.pairs), "peer_found": best.found_rate,
+                     "peer_lo": best.found_lo, "peer_hi": best.found_hi, "vs_peer": verdict,
+                     "ratio_to_peer": ours.found_rate / best.found_rate if best.found_rate else np.nan,
+                     # The detector's pairs are its own (seeds 100000+), with consensus's find on them.
+                     "detector_found": detector.found_rate.sum() if len(detector) else np.nan,
+                     "consensus_found_detector_pairs": detector.consensus_found_rate.sum() if len(detector) else np.nan,
+                     "ratio_to_detector": (detector.consensus_found_rate.sum() / detector.found_rate.sum()
+                                           if len(detector) and detector.found_rate.sum() else np.nan),
+                     "oracle_fit_found": ours.correspondence_oracle_found})
+    return pd.DataFrame(rows)
+
+
 def acceptance_rows(n: int, layout: str, snr: float, seeds, unrelated: bool, search: bool) -> list[tuple]:
     """(seed, triangle log NFA (inf: no test), its transform found, merged) of consensus on the detector's pairs
     ``seeds``, in batches; without ``search`` the triangle test alone decides."""
@@ -245,7 +278,10 @@ def main(argv=None) -> None:
     parser.add_argument("--pairs", type=int, default=10_000, help="held-out unrelated pairs per cell")
     parser.add_argument("--bound-pairs", type=int, default=2_000, help="unrelated pairs per cell of the bound check")
     parser.add_argument("--out", default="results/detector/small")
-    parser.add_argument("--checks", nargs="+", choices=("bound", "holdout", "calibrated", "acceptance", "levels"),
+    parser.add_argument("--peers", default="results/peers/equal_rate.csv",
+                        help="experiments.peers --equal-rate's table, for the reference check")
+    parser.add_argument("--checks", nargs="+",
+                        choices=("bound", "holdout", "calibrated", "acceptance", "levels", "reference"),
                         default=["bound", "holdout"])
     parser.add_argument("--layouts", nargs="+", choices=("strip", "interleaved"), default=["strip"],
                         help="layouts of the acceptance and levels checks")
@@ -304,6 +340,14 @@ def main(argv=None) -> None:
         table = pd.DataFrame(Parallel(n_jobs=args.n_jobs)(
             delayed(level_table)(n, layout, snr, level, args.related, args.pairs) for n, layout, snr, level in jobs))
         for path in save_table(table, out / "levels"):
+            print(path)
+    if "reference" in args.checks:
+        missing = [path for path in (Path(args.peers), out / "limit.csv") if not path.is_file()]
+        if missing:
+            raise SystemExit(f"reference check: {missing[0]} not found (run experiments.peers --equal-rate and "
+                             f"experiments.detector --out {out} first)")
+        table = reference_table(pd.read_csv(args.peers), pd.read_csv(out / "limit.csv"))
+        for path in save_table(table, out / "reference"):
             print(path)
 
 

@@ -108,3 +108,22 @@ def test_small_maps_levels_check_merges_more_at_a_looser_level_and_restores_it()
     # On 10-landmark maps at 20 dB the shipped level accepts few related pairs; 1e-2 accepts more of the same.
     assert merged[1] > merged[0]
     assert 0 <= strict["false_merges"] <= 3 and strict["false_upper"] > 0
+
+
+def test_small_maps_reference_puts_consensus_beside_the_best_peer_and_the_detector():
+    from experiments import small_maps
+
+    def row(method, found, lo, hi, pairs=1000):
+        return {"layout": "strip", "n_landmarks": 10, "snr_db": 20.0, "method": method, "pairs": pairs,
+                "found_rate": found, "found_lo": lo, "found_hi": hi, "false_merges": 0,
+                "correspondence_oracle_found": 0.6}
+
+    peers = pd.DataFrame([row("consensus", 0.40, 0.37, 0.43), row("cpd", 0.53, 0.49, 0.57, 500),
+                          row("clipper", 0.40, 0.37, 0.43), {**row("consensus", 1.0, 0.99, 1.0), "n_landmarks": 100}])
+    limit = pd.DataFrame({"layout": ["strip"], "n_landmarks": [10], "snr_db": [20.0], "found_rate": [0.2],
+                          "consensus_found_rate": [0.4]})
+    table = small_maps.reference_table(peers, limit)
+    assert len(table) == 1  # 100 landmarks are not a small map
+    r = table.iloc[0]
+    assert (r.best_peer, r.peer_pairs, r.vs_peer) == ("cpd", 500, "behind")
+    assert r.ratio_to_peer == pytest.approx(0.40 / 0.53) and r.ratio_to_detector == pytest.approx(2.0)
