@@ -116,8 +116,9 @@ STEPS: tuple[Step, ...] = (
                            "holdout", "--pairs", "10000", "--out", "results/detector/small"), ("results/detector/small",)),
     Step("small_acceptance", ("experiments.small_maps", "--landmarks", "5", "10", "15", "20", "30", "50", "100",
                               "--layouts", "strip", "interleaved", "--snrs", "10", "15", "20", "25", "30", "35",
-                              "40", "--checks", "acceptance", "--tuning-pairs", "10000", "--related", "500", "--pairs", "10000",
-                              "--n-jobs", "2", "--out", "results/detector/small"), ("results/detector/small",)),
+                              "40", "--checks", "acceptance", "--tuning-pairs", "10000", "--related", "500",
+                              "--pairs", "10000", "--n-jobs", "2", "--out", "results/detector/small"),
+         ("results/detector/small",)),
     # What-if levels of the triangle test on held-out pairs and on the peers' related pairs (docs/small_maps.md).
     Step("small_levels", ("experiments.small_maps", "--landmarks", "10", "20", "--layouts", "strip", "interleaved",
                           "--snrs", "10", "15", "20", "25", "30", "35", "40", "--checks", "levels", "--levels", "1e-4",

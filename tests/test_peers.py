@@ -93,7 +93,8 @@ def test_a_rerun_of_some_methods_keeps_the_other_methods_rows(tmp_path):
 
     path = tmp_path / "peers.csv"
     pd.DataFrame({"method": ["consensus", "cpd", "consensus", "cpd"],
-                  "layout": ["strip", "strip", "interleaved", "interleaved"], "n_landmarks": 10}).to_csv(path, index=False)
+                  "layout": ["strip", "strip", "interleaved", "interleaved"],
+                  "n_landmarks": 10}).to_csv(path, index=False)
     kept = peers.kept_rows(path, "strip", ["consensus"])
     assert sorted(zip(kept["method"], kept["layout"])) == [("consensus", "interleaved"), ("cpd", "interleaved"),
                                                            ("cpd", "strip")]
@@ -150,7 +151,8 @@ def test_clipper_draws_its_start_from_the_merge_generator():
     P, Q, sigma = (np.stack([getattr(sc, k) for sc in scenes[:3]]) for k in ("p", "q", "sigma"))
     batch = mm.merge_batch(P, Q, sigma, method="clipper")
     for b, sc in enumerate(scenes[:3]):
-        np.testing.assert_array_equal(batch.result(b).pairs, mm.merge_maps(sc.p, sc.q, sc.sigma, method="clipper").pairs)
+        alone = mm.merge_maps(sc.p, sc.q, sc.sigma, method="clipper")
+        np.testing.assert_array_equal(batch.result(b).pairs, alone.pairs)
 
 
 def test_calibrating_one_peer_keeps_the_other_peers_rows(tmp_path, monkeypatch):
@@ -163,5 +165,6 @@ def test_calibrating_one_peer_keeps_the_other_peers_rows(tmp_path, monkeypatch):
                   "max_share": 0.9}).to_csv(tmp_path / "calibration.csv", index=False)
     monkeypatch.setattr(peers, "CALIBRATION_PAIRS", {10: 4})
     df = peers.calibrate(tmp_path, 1, ["clipper"])
-    assert list(zip(df["peer"], df["n_landmarks"], df["pairs"])) == [("cpd", 100, 9), ("cpd", 10, 9), ("clipper", 10, 4)]
+    assert list(zip(df["peer"], df["n_landmarks"], df["pairs"])) == [("cpd", 100, 9), ("cpd", 10, 9),
+                                                                      ("clipper", 10, 4)]
     assert pd.read_csv(tmp_path / "calibration.csv")["peer"].tolist() == ["cpd", "cpd", "clipper"]
