@@ -393,8 +393,11 @@ def calibrate(out: Path, processes: int = 2, methods=None) -> pd.DataFrame:
     peers = [p for p in PEER_PAIRS if importlib.util.find_spec(PEER_MODULES[p]) and (not methods or p in methods)]
     jobs = [(p, n) for p in peers for n in CALIBRATION_PAIRS]
     jobs.sort(key=lambda j: -j[1])
-    with Pool(processes) as pool:
-        df = pd.DataFrame(pool.map(calibration_scores, jobs, chunksize=1))
+    if processes == 1:
+        df = pd.DataFrame(map(calibration_scores, jobs))
+    else:
+        with Pool(processes) as pool:
+            df = pd.DataFrame(pool.map(calibration_scores, jobs, chunksize=1))
     if (out / "calibration.csv").is_file():
         old = pd.read_csv(out / "calibration.csv")
         order = {peer: k for k, peer in enumerate(PEER_PAIRS)}
