@@ -69,8 +69,8 @@ import itertools
 import os
 import time
 from multiprocessing import Pool
-from unittest import mock
 from pathlib import Path
+from unittest import mock
 
 # CLIPPER and TEASER++ use OpenMP; the two worker processes are the parallelism.
 os.environ.setdefault("OMP_NUM_THREADS", "1")
@@ -142,14 +142,18 @@ PEER_SOURCES = ("__init__.py", "_validation.py", "alignment.py", "assignment.py"
 SHARED_BASELINE_SOURCES = ("__init__.py", "associations.py")
 
 
+def library_sources() -> list[Path]:
+    """Every source file of the library, relative to it, in a fixed order."""
+    library = Path(mm.__file__).resolve().parent
+    return [f.relative_to(library) for f in sorted(library.rglob("*.py"))]
+
+
 def peer_sources(method: str) -> list[Path]:
     """The library files a peer's chunk runs, relative to the library (``PEER_SOURCES``, of ``baselines``
     only the shared modules and the peer's own)."""
-    library = Path(mm.__file__).resolve().parent
     own = (*SHARED_BASELINE_SOURCES, f"{method}.py")
-    return [f.relative_to(library) for f in sorted(library.rglob("*.py"))
-            if f.relative_to(library).parts[0] in PEER_SOURCES
-            and (f.relative_to(library).parts[0] != "baselines" or f.name in own)]
+    return [f for f in library_sources()
+            if f.parts[0] in PEER_SOURCES and (f.parts[0] != "baselines" or f.name in own)]
 
 
 def available_methods() -> list[str]:
@@ -425,8 +429,7 @@ def _rows_key(method: str) -> str:
     peer: ``peer_sources``; consensus: all of them) and the functions that compute a chunk (not the tables
     drawn from them)."""
     library = Path(mm.__file__).resolve().parent
-    files = (peer_sources(method) if method in PEER_BOUNDS else
-             [f.relative_to(library) for f in sorted(library.rglob("*.py"))])
+    files = peer_sources(method) if method in PEER_BOUNDS else library_sources()
     digest = hashlib.sha256()
     for path in files:
         digest.update(path.as_posix().encode() + (library / path).read_bytes())

@@ -174,6 +174,11 @@ def calibrated_table(n: int, snr: float, related: int, pairs: int, quantile: flo
             "false_merges": int(hold.merged.sum())}
 
 
+def _ratio(a: float, b: float) -> float:
+    """a / b, NaN where b is 0 or NaN (nothing to compare with)."""
+    return a / b if b > 0 else np.nan
+
+
 def reference_table(equal_rate: pd.DataFrame, limit: pd.DataFrame) -> pd.DataFrame:
     """consensus against the best peer at one false-merge rate and the detector at 1e-3, per small-map cell."""
     rows = []
@@ -182,7 +187,9 @@ def reference_table(equal_rate: pd.DataFrame, limit: pd.DataFrame) -> pd.DataFra
         ours = cell[cell.method == "consensus"].iloc[0]
         peers = cell[(cell.method != "consensus") & (cell.pairs > 0)]
         best = peers.loc[peers.found_rate.idxmax()]
-        detector = limit[(limit.layout == layout) & (limit.n_landmarks == n) & (limit.snr_db == snr)]
+        found = limit[(limit.layout == layout) & (limit.n_landmarks == n) & (limit.snr_db == snr)]
+        # The detector's pairs are its own (seeds 100000+), with consensus's find on them; NaN without a row.
+        detector = found.iloc[0] if len(found) else pd.Series({"found_rate": np.nan, "consensus_found_rate": np.nan})
         verdict = ("ahead" if ours.found_lo > best.found_hi else "behind" if ours.found_hi < best.found_lo
                    else "level")
         rows.append({"layout": layout, "n_landmarks": n, "snr_db": snr, "pairs": int(ours.pairs),
@@ -190,12 +197,10 @@ def reference_table(equal_rate: pd.DataFrame, limit: pd.DataFrame) -> pd.DataFra
                      "consensus_hi": ours.found_hi, "consensus_false": int(ours.false_merges),
                      "best_peer": best.method, "peer_pairs": int(best.pairs), "peer_found": best.found_rate,
                      "peer_lo": best.found_lo, "peer_hi": best.found_hi, "vs_peer": verdict,
-                     "ratio_to_peer": ours.found_rate / best.found_rate if best.found_rate else np.nan,
-                     # The detector's pairs are its own (seeds 100000+), with consensus's find on them.
-                     "detector_found": detector.found_rate.sum() if len(detector) else np.nan,
-                     "consensus_found_detector_pairs": detector.consensus_found_rate.sum() if len(detector) else np.nan,
-                     "ratio_to_detector": (detector.consensus_found_rate.sum() / detector.found_rate.sum()
-                                           if len(detector) and detector.found_rate.sum() else np.nan),
+                     "ratio_to_peer": _ratio(ours.found_rate, best.found_rate),
+                     "detector_found": detector.found_rate,
+                     "consensus_found_detector_pairs": detector.consensus_found_rate,
+                     "ratio_to_detector": _ratio(detector.consensus_found_rate, detector.found_rate),
                      "oracle_fit_found": ours.correspondence_oracle_found})
     return pd.DataFrame(rows)
 
