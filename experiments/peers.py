@@ -8,9 +8,9 @@
 Every method sees the same pairs: ``make_pair(n, 0.75, snr, rng=seed,
 layout=layout)`` with seeds 0, 1, ... for the related pairs and the same
 seeds with ``unrelated=True`` for the unrelated ones. Strip layout: n = 10
-and 20 landmarks (15, 20, 30 dB) and n = 100 (10, 15, 20, 30 dB);
-interleaved layout: n = 10 and 20 (20, 30 dB) and n = 100 (10, 15, 20,
-30 dB). Methods: consensus, the paper, Groth's voting, astroalign (when
+and 20 landmarks (15, 20, 30 dB) and n = 100 (0, 5, 10, 15, 20, 30 dB);
+interleaved layout: n = 10 and 20 (20, 30 dB) and n = 100 (0, 5, 10, 15,
+20, 30 dB). Methods: consensus, the paper, Groth's voting, astroalign (when
 installed) and the peers that are installed (``pip install
 'mapmerge[peers]'``; ``tools/build_peers.sh``), or those named by
 ``--methods``. ``PAIRS`` related and as many unrelated pairs per cell, fewer
@@ -19,8 +19,11 @@ replaces that layout's rows of ``peers.csv``, keeping the other layout's;
 ``peers.md`` is rewritten from all of them. ``peers.csv`` holds: transform found
 (``metrics.transform_found``'s rule) with its 95 % Wilson interval, wrong
 merges (related pairs merged with a transform that is not found), false
-merges on the unrelated pairs, the median seconds per merge (one pair at a
-time, on the first ``TIMED_PAIRS`` related pairs), and beside them two
+merges on the unrelated pairs, the landmark pairs of the related pairs'
+merges against the oracle association (each map pair's true common
+landmarks: correct, wrong, and the common ones, summed over the cell), the
+median seconds per merge (one pair at a time, on the first ``TIMED_PAIRS``
+related pairs), and beside them two
 limits: the fit knowing every correspondence
 (``metrics.correspondence_oracle_transform``) on the same pairs, and the
 exhaustive ML detector's found rate where results/detector/ has the cell
@@ -86,8 +89,9 @@ from mapmerge.result import MIN_MATCHED_LANDMARKS
 
 #: (landmarks per map, SNR in dB) of every cell per layout; overlap 0.75.
 CELLS = {"strip": [(10, 15), (10, 20), (10, 30), (20, 15), (20, 20), (20, 30),
-                   (100, 10), (100, 15), (100, 20), (100, 30)],
-         "interleaved": [(10, 20), (10, 30), (20, 20), (20, 30), (100, 10), (100, 15), (100, 20), (100, 30)]}
+                   (100, 0), (100, 5), (100, 10), (100, 15), (100, 20), (100, 30)],
+         "interleaved": [(10, 20), (10, 30), (20, 20), (20, 30),
+                         (100, 0), (100, 5), (100, 10), (100, 15), (100, 20), (100, 30)]}
 OVERLAP = 0.75
 #: Related (and as many unrelated) pairs per cell.
 PAIRS = 200
@@ -178,6 +182,10 @@ def run_cell(job) -> dict:
             # A related pair merged with a transform outside the found rule's tolerance is a wrong merge, not a
             # miss: a method that accepts loosely gains found pairs and wrong merges together.
             out["wrong_merges"] = int(np.sum(err["matched"] & ~err["transform_found"]))
+            # Landmark pairs against the oracle association (the pairs' true common landmarks).
+            out["correct_pairs"] = int(err["correct_pairs"].sum())
+            out["wrong_pairs"] = int(err["wrong_pairs"].sum())
+            out["common_pairs"] = int((err["correct_pairs"] + err["missed_pairs"]).sum())
     times = []
     for seed in range(TIMED_PAIRS):
         sc = mm.simulate.make_pair(n, OVERLAP, snr, rng=seed, layout=layout)
@@ -271,7 +279,7 @@ def kept_rows(path: Path, layout: str, methods) -> pd.DataFrame:
 
 def write_markdown(df: pd.DataFrame, path: Path) -> None:
     """peers.md: one row per (layout, n, SNR), one column per method (found rate [interval], false merges,
-    time)."""
+    time); then the landmark pairs against the oracle association in the same layout."""
     methods = list(df["method"].cat.categories)
     lines = [("Transform found on related pairs, % [95 % Wilson interval] (pairs), wrong merges (related pairs "
               "merged with a transform that is not found), false merges on as many unrelated pairs, median "
@@ -295,6 +303,16 @@ def write_markdown(df: pd.DataFrame, path: Path) -> None:
         det = "" if pd.isna(first.detector_found) else f"{100 * first.detector_found:.0f}"
         lines.append(f"| {layout}, {n}, {snr:g} dB | " + " | ".join(parts) +
                      f" | {100 * first.correspondence_oracle_found:.0f} ({int(first.oracle_pairs)}) | {det} |")
+    lines += ["", ("Landmark pairs of the related pairs' merges against the oracle association (each map pair's "
+                   "true common landmarks): correct pairs, % of the common ones, and wrong pairs per related "
+                   "map pair (declared pairs whose landmarks are not the same, or not common)."), "",
+              "| layout, n, SNR | " + " | ".join(methods) + " |", "|---|" + "---|" * len(methods)]
+    for (layout, n, snr), cell in df.groupby(["layout", "n_landmarks", "snr_db"], sort=True, observed=True):
+        by = cell.set_index("method", drop=False)
+        parts = ["not run" if m not in by.index or pd.isna(by.loc[m].get("correct_pairs")) else
+                 f"{100 * by.loc[m, 'correct_pairs'] / by.loc[m, 'common_pairs']:.0f} % correct, "
+                 f"{by.loc[m, 'wrong_pairs'] / by.loc[m, 'pairs']:.1f} wrong" for m in methods]
+        lines.append(f"| {layout}, {n}, {snr:g} dB | " + " | ".join(parts) + " |")
     path.write_text("\n".join(lines) + "\n")
 
 

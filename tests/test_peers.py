@@ -168,3 +168,20 @@ def test_calibrating_one_peer_keeps_the_other_peers_rows(tmp_path, monkeypatch):
     assert list(zip(df["peer"], df["n_landmarks"], df["pairs"])) == [("cpd", 100, 9), ("cpd", 10, 9),
                                                                       ("clipper", 10, 4)]
     assert pd.read_csv(tmp_path / "calibration.csv")["peer"].tolist() == ["cpd", "cpd", "clipper"]
+
+
+def test_a_cell_counts_landmark_pairs_against_the_oracle(tmp_path):
+    import pandas as pd
+
+    from experiments import peers
+
+    row = peers.run_cell(("consensus", "strip", 10, 40.0, 4))
+    # At 40 dB consensus finds these pairs with every declared landmark pair right.
+    assert row["found"] == 4 and row["wrong_pairs"] == 0
+    assert 0 < row["correct_pairs"] <= row["common_pairs"]
+    df = pd.DataFrame([{**row, "found_rate": 1.0, "found_lo": 0.5, "found_hi": 1.0, "false_merges": 0,
+                        "correspondence_oracle_found": 1.0, "oracle_pairs": 4, "detector_found": float("nan")}])
+    df["method"] = pd.Categorical(df["method"], ["consensus"])
+    peers.write_markdown(df, tmp_path / "peers.md")
+    share = 100 * row["correct_pairs"] / row["common_pairs"]
+    assert f"| strip, 10, 40 dB | {share:.0f} % correct, 0.0 wrong |" in (tmp_path / "peers.md").read_text()
