@@ -95,9 +95,11 @@ CELLS = {"strip": [(10, 15), (10, 20), (10, 30), (20, 15), (20, 20), (20, 30),
 OVERLAP = 0.75
 #: Related (and as many unrelated) pairs per cell.
 PAIRS = 200
-#: Fewer pairs for methods slow at a map size: (method, n) -> pairs (0: not run).
-#: astroalign is not run at 100 landmarks: 0.35-5 s per merge there (results/compare).
-SLOW_PAIRS = {("cpd", 100): 25, ("astroalign", 100): 0}
+#: Fewer pairs for methods slow at a map size, or at a map size and SNR: (method, n) or (method, n, SNR) ->
+#: pairs (0: not run; the SNR's entry first). astroalign is not run at 100 landmarks: 0.35-5 s per merge there
+#: (results/compare). TEASER++'s exact maximum clique takes 1.5-4 s a merge at 100 landmarks and 5 dB, and
+#: 30-40 s at 0 dB, where most putative associations are mutually consistent (a near-complete graph).
+SLOW_PAIRS = {("cpd", 100): 25, ("astroalign", 100): 0, ("teaser", 100, 5): 50, ("teaser", 100, 0): 10}
 #: Related pairs timed one at a time per cell.
 TIMED_PAIRS = 10
 #: Unrelated calibration pairs per map size at 30 dB, and their first seed (reported seeds start at 0).
@@ -224,10 +226,11 @@ def compare(out: Path, processes: int = 2, layout: str = "strip", methods=None, 
         raise ValueError(f"layout must be one of {list(CELLS)}, got {layout!r}")
     methods = list(methods or available_methods())
     cells = CELLS[layout]
-    counts = {(m, n): min(SLOW_PAIRS.get((m, n), pairs), pairs) for m in methods for n, _ in cells}
-    jobs = [(m, layout, n, snr, counts[m, n]) for n, snr in cells for m in methods if counts[m, n]]
-    # Slowest first so that the workers finish together.
-    jobs.sort(key=lambda j: -j[4] * j[2] ** 2)
+    counts = {(m, n, snr): min(SLOW_PAIRS.get((m, n, snr), SLOW_PAIRS.get((m, n), pairs)), pairs)
+              for m in methods for n, snr in cells}
+    jobs = [(m, layout, n, snr, counts[m, n, snr]) for n, snr in cells for m in methods if counts[m, n, snr]]
+    # Slowest first so that the workers finish together (large maps and low SNR are slow).
+    jobs.sort(key=lambda j: -j[4] * j[2] ** 2 / (1 + j[3]))
     oracle_jobs = [(layout, n, snr, pairs) for n, snr in cells]
     rows = []
     if processes == 1:
