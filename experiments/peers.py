@@ -133,6 +133,9 @@ EQUAL_RATE_TUNING = 1000
 #: pairs per cell alone would take hours; CLIPPER and TEASER++ take 0.05-0.7 s a merge at 100 landmarks.
 EQUAL_RATE_PAIRS = 1000
 EQUAL_RATE_SLOW = {("cpd", 10): 500, ("cpd", 20): 500, ("cpd", 100): 0, ("clipper", 100): 500, ("teaser", 100): 500}
+#: The reason the tables give for a method left out of a cell (``SLOW_PAIRS`` or ``EQUAL_RATE_SLOW`` 0).
+NOT_RUN = {("astroalign", 100): "not run: 0.35-5 s a merge",
+           ("cpd", 100): "not run: 0.6-1.2 s a merge, about an hour for a cell's 3,000 merges"}
 #: Pairs per job of ``--equal-rate`` (its unit of parallelism and of resumption).
 EQUAL_RATE_CHUNK = 100
 #: Where ``--equal-rate`` keeps each chunk's per-pair outcomes (not committed).
@@ -166,6 +169,11 @@ def available_methods() -> list[str]:
     """consensus, paper, groth, then every optional method whose package is importable."""
     optional = [m for m in ("astroalign", "cpd", "clipper", "teaser") if importlib.util.find_spec(PEER_MODULES[m])]
     return ["consensus", "paper", "groth", *optional]
+
+
+def not_run(method: str, n: int) -> str:
+    """The table entry of a method left out of a cell of n-landmark maps."""
+    return NOT_RUN.get((method, n), "not run")
 
 
 def run_cell(job) -> dict:
@@ -296,7 +304,7 @@ def write_markdown(df: pd.DataFrame, path: Path) -> None:
         parts = []
         for m in methods:
             if m not in by.index or pd.isna(by.loc[m, "found"]):
-                parts.append("not run")
+                parts.append(not_run(m, n))
                 continue
             r = by.loc[m]
             wrong = "" if pd.isna(r.get("wrong_merges")) else f"{int(r.wrong_merges)} wrong, "
@@ -312,7 +320,7 @@ def write_markdown(df: pd.DataFrame, path: Path) -> None:
               "| layout, n, SNR | " + " | ".join(methods) + " |", "|---|" + "---|" * len(methods)]
     for (layout, n, snr), cell in df.groupby(["layout", "n_landmarks", "snr_db"], sort=True, observed=True):
         by = cell.set_index("method", drop=False)
-        parts = ["not run" if m not in by.index or pd.isna(by.loc[m].get("correct_pairs")) else
+        parts = [not_run(m, n) if m not in by.index or pd.isna(by.loc[m].get("correct_pairs")) else
                  f"{100 * by.loc[m, 'correct_pairs'] / by.loc[m, 'common_pairs']:.0f} % correct, "
                  f"{by.loc[m, 'wrong_pairs'] / by.loc[m, 'pairs']:.1f} wrong" for m in methods]
         lines.append(f"| {layout}, {n}, {snr:g} dB | " + " | ".join(parts) + " |")
@@ -624,7 +632,7 @@ def write_equal_rate(df: pd.DataFrame, path: Path, pairs: int) -> None:
         parts = []
         for m in methods:
             if m not in by.index:
-                parts.append("not run")
+                parts.append(not_run(m, n))
                 continue
             r = by.loc[m]
             text = (f"{100 * r.found_rate:.1f} [{100 * r.found_lo:.1f}, {100 * r.found_hi:.1f}] ({int(r.pairs)}), "
