@@ -27,7 +27,9 @@ related pairs), and beside them two
 limits: the fit knowing every correspondence
 (``metrics.correspondence_oracle_transform``) on the same pairs, and the
 exhaustive ML detector's found rate where results/detector/ has the cell
-(its own pairs and threshold; see that directory).
+(its own pairs and threshold; see that directory). Each cell's row is kept
+in ``CELL_ROWS`` as soon as it is done (keyed as ``--equal-rate``'s chunks
+are, below), so a stopped run resumes.
 
 ``--scaling`` times one merge at a time on the first ``SCALING_PAIRS``
 related pairs at 30 dB (strip layout) of ``SCALING_SIZES`` landmarks, for
@@ -42,7 +44,8 @@ size from seeds ``CALIBRATION_SEED`` + i (disjoint from the reported ones),
 records each peer's inlier count before its acceptance test and writes
 ``calibration.csv`` / ``.md``: per peer and size, the largest and second
 largest inlier share of the smaller map, and the smallest acceptance share
-that lets at most one of them through. The peers' module constants
+that lets at most one of them through (each peer and size kept in
+``CELL_ROWS`` as soon as it is done). The peers' module constants
 (``*_MIN_INLIERS``) hold, per size, the least inlier count that lets at most one through.
 
 ``--equal-rate`` compares the methods at one false-merge rate in every
@@ -69,6 +72,7 @@ import hashlib
 import importlib.util
 import inspect
 import itertools
+import json
 import os
 import time
 from multiprocessing import Pool
@@ -100,6 +104,9 @@ PAIRS = 200
 #: (results/compare). TEASER++'s exact maximum clique takes 1.5-4 s a merge at 100 landmarks and 5 dB, and
 #: 30-40 s at 0 dB, where most putative associations are mutually consistent (a near-complete graph).
 SLOW_PAIRS = {("cpd", 100): 25, ("astroalign", 100): 0, ("teaser", 100, 5): 50, ("teaser", 100, 0): 10}
+#: Where ``compare`` and ``--calibrate`` keep each cell's row (not committed), keyed like ``--equal-rate``'s
+#: chunks.
+CELL_ROWS = Path("outputs") / "peers" / "cells"
 #: Related pairs timed one at a time per cell.
 TIMED_PAIRS = 10
 #: Unrelated calibration pairs per map size at 30 dB, and their first seed (reported seeds start at 0).
@@ -176,8 +183,32 @@ def not_run(method: str, n: int) -> str:
     return NOT_RUN.get((method, n), "not run")
 
 
+def kept_row(path: Path, compute, job) -> dict:
+    """``compute(job)``, a dict of numbers and strings, kept at ``path`` as soon as it is done (and read back
+    from there)."""
+    if path.is_file():
+        return json.loads(path.read_text())
+    row = compute(job)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    part = path.with_suffix(".part")
+    part.write_text(json.dumps(row))
+    part.replace(path)  # a stopped run leaves no half-written row
+    return row
+
+
+def cell_path(job) -> Path:
+    method, layout, n, snr, count = job
+    key = _rows_key(method, (kept_row, measure_cell), (OVERLAP, TIMED_PAIRS))
+    return CELL_ROWS / f"{method}_{layout}_{n}_{snr:g}_{count}_{key}.json"
+
+
 def run_cell(job) -> dict:
-    """One method on one cell: found, wrong merges of related pairs, false merges, time."""
+    """``measure_cell``, kept in ``CELL_ROWS``."""
+    return kept_row(cell_path(job), measure_cell, job)
+
+
+def measure_cell(job) -> dict:
+    """One method on one cell: found, wrong merges of related pairs, false merges, landmark pairs, time."""
     method, layout, n, snr, count = job
     seeds = list(range(count))
     out = {"method": method, "layout": layout, "n_landmarks": n, "snr_db": snr, "pairs": count}
@@ -407,6 +438,14 @@ def write_scaling(df: pd.DataFrame, out: Path, sizes, time_limit: float, methods
 
 
 def calibration_scores(job) -> dict:
+    """``peer_shares``, kept in ``CELL_ROWS`` as soon as it is done (and read back from there)."""
+    peer, n = job
+    count = SLOW_CALIBRATION_PAIRS.get((peer, n), CALIBRATION_PAIRS[n])
+    key = _rows_key(peer, (kept_row, peer_shares), (OVERLAP, CALIBRATION_SNR, CALIBRATION_SEED, count))
+    return kept_row(CELL_ROWS / f"calibration_{peer}_{n}_{count}_{key}.json", peer_shares, job)
+
+
+def peer_shares(job) -> dict:
     """A peer's inlier shares on a map size's unrelated calibration pairs at 30 dB."""
     peer, n = job
     count = SLOW_CALIBRATION_PAIRS.get((peer, n), CALIBRATION_PAIRS[n])
@@ -453,17 +492,19 @@ def accepting_every_inlier_set(method: str):
 
 
 @functools.cache
-def _rows_key(method: str) -> str:
-    """The digest that keys ``--equal-rate``'s kept chunks of ``method``: the library sources it runs (a
-    peer: ``peer_sources``; consensus: all of them) and the functions that compute a chunk (not the tables
-    drawn from them)."""
+def _rows_key(method: str, functions=None, settings=()) -> str:
+    """The digest that keys kept rows of ``method``: the library sources it runs (a peer: ``peer_sources``;
+    our methods: all of them), the functions that compute the rows (not the tables drawn from them; by
+    default those of an ``--equal-rate`` chunk) and the module ``settings`` they read."""
     library = Path(mm.__file__).resolve().parent
     files = peer_sources(method) if method in PEER_BOUNDS else library_sources()
     digest = hashlib.sha256()
     for path in files:
         digest.update(path.as_posix().encode() + (library / path).read_bytes())
-    for function in (outcome_chunk, accepting_every_inlier_set):
+    for function in functions or (outcome_chunk, accepting_every_inlier_set):
         digest.update(inspect.getsource(function).encode())
+    if settings:
+        digest.update(repr(settings).encode())
     return digest.hexdigest()[:12]
 
 

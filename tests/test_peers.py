@@ -164,6 +164,7 @@ def test_calibrating_one_peer_keeps_the_other_peers_rows(tmp_path, monkeypatch):
     pd.DataFrame({"peer": ["cpd", "clipper", "cpd"], "n_landmarks": [100, 10, 10], "pairs": 9,
                   "max_share": 0.9}).to_csv(tmp_path / "calibration.csv", index=False)
     monkeypatch.setattr(peers, "CALIBRATION_PAIRS", {10: 4})
+    monkeypatch.setattr(peers, "CELL_ROWS", tmp_path / "kept")
     df = peers.calibrate(tmp_path, 1, ["clipper"])
     assert list(zip(df["peer"], df["n_landmarks"], df["pairs"])) == [("cpd", 100, 9), ("cpd", 10, 9),
                                                                       ("clipper", 10, 4)]
@@ -175,7 +176,7 @@ def test_a_cell_counts_landmark_pairs_against_the_oracle(tmp_path):
 
     from experiments import peers
 
-    row = peers.run_cell(("consensus", "strip", 10, 40.0, 4))
+    row = peers.measure_cell(("consensus", "strip", 10, 40.0, 4))
     # At 40 dB consensus finds these pairs with every declared landmark pair right.
     assert row["found"] == 4 and row["wrong_pairs"] == 0
     assert 0 < row["correct_pairs"] <= row["common_pairs"]
@@ -185,3 +186,14 @@ def test_a_cell_counts_landmark_pairs_against_the_oracle(tmp_path):
     peers.write_markdown(df, tmp_path / "peers.md")
     share = 100 * row["correct_pairs"] / row["common_pairs"]
     assert f"| strip, 10, 40 dB | {share:.0f} % correct, 0.0 wrong |" in (tmp_path / "peers.md").read_text()
+
+
+def test_a_cells_row_is_kept_and_read_back(tmp_path, monkeypatch):
+    from experiments import peers
+
+    monkeypatch.setattr(peers, "CELL_ROWS", tmp_path)
+    job = ("paper", "strip", 10, 30, 3)
+    first = peers.run_cell(job)
+    assert peers.cell_path(job).is_file() and not list(tmp_path.glob("*.part"))
+    monkeypatch.setattr(mm.simulate, "make_pairs", lambda *a, **k: pytest.fail("a kept cell was measured again"))
+    assert peers.run_cell(job) == first
