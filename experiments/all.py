@@ -111,9 +111,11 @@ STEPS: tuple[Step, ...] = (
                             "--maximiser", "pairs", "--out", "results/detector/small"), ("results/detector/small",)),
     # Both read detector_small's stages.csv.
     Step("small_bound", ("experiments.small_maps", "--landmarks", "10", "20", "--snrs", "20", "30", "--checks", "bound",
-                         "--bound-pairs", "2000", "--out", "results/detector/small"), ("results/detector/small",)),
+                         "--bound-pairs", "2000", "--n-jobs", "2", "--out", "results/detector/small"),
+         ("results/detector/small",)),
     Step("small_holdout", ("experiments.small_maps", "--landmarks", "10", "20", "--snrs", "20", "30", "--checks",
-                           "holdout", "--pairs", "10000", "--out", "results/detector/small"), ("results/detector/small",)),
+                           "holdout", "--pairs", "10000", "--n-jobs", "2", "--out", "results/detector/small"),
+         ("results/detector/small",)),
     Step("small_acceptance", ("experiments.small_maps", "--landmarks", "5", "10", "15", "20", "30", "50", "100",
                               "--layouts", "strip", "interleaved", "--snrs", "10", "15", "20", "25", "30", "35",
                               "40", "--checks", "acceptance", "--tuning-pairs", "10000", "--related", "500",

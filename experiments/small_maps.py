@@ -292,27 +292,29 @@ def main(argv=None) -> None:
                         help="layouts of the acceptance and levels checks")
     parser.add_argument("--tuning-pairs", type=int, default=10_000, help="unrelated tuning pairs per cell of the "
                         "acceptance check")
-    parser.add_argument("--n-jobs", type=int, default=1,
-                        help="cells of the acceptance and levels checks run in parallel")
+    parser.add_argument("--n-jobs", type=int, default=1, help="cells run in parallel (every check but reference)")
     parser.add_argument("--related", type=int, default=500,
                         help="related pairs per cell of the calibrated, acceptance and levels checks")
     parser.add_argument("--quantile", type=float, default=2e-4, help="tuning quantile of the calibrated check")
     parser.add_argument("--levels", type=float, nargs="+", default=list(NFA_LEVELS[1:]),
                         help="triangle acceptance levels of the levels check")
     args = parser.parse_args(argv)
-    if min(args.pairs, args.bound_pairs) < 1:
-        raise SystemExit(f"--pairs and --bound-pairs must be >= 1, got {args.pairs} and {args.bound_pairs}")
+    if min(args.pairs, args.bound_pairs, args.n_jobs) < 1:
+        raise SystemExit(f"--pairs, --bound-pairs and --n-jobs must be >= 1, got {args.pairs}, {args.bound_pairs} "
+                         f"and {args.n_jobs}")
     out = Path(args.out)
     cells = list(itertools.product(args.landmarks, args.snrs))
     if "bound" in args.checks:
-        table = pd.DataFrame([bound_table(n, snr, args.bound_pairs) for n, snr in cells])
+        table = pd.DataFrame(Parallel(n_jobs=args.n_jobs)(delayed(bound_table)(n, snr, args.bound_pairs)
+                                                          for n, snr in cells))
         for path in save_table(table, out / "bound"):
             print(path, flush=True)
     if "holdout" in args.checks:
         if not (out / "stages.csv").is_file():
             raise SystemExit(f"--out {out}: no stages.csv (run experiments.detector there first)")
         stages = pd.read_csv(out / "stages.csv")
-        table = pd.DataFrame([holdout_table(n, snr, args.pairs, stages, out) for n, snr in cells])
+        table = pd.DataFrame(Parallel(n_jobs=args.n_jobs)(delayed(holdout_table)(n, snr, args.pairs, stages, out)
+                                                          for n, snr in cells))
         for path in save_table(table, out / "holdout"):
             print(path)
     if "calibrated" in args.checks:
@@ -326,9 +328,8 @@ def main(argv=None) -> None:
         for path in save_table(table, out / "calibrated"):
             print(path)
     if "acceptance" in args.checks:
-        if min(args.tuning_pairs, args.related) < 1 or args.n_jobs < 1:
-            raise SystemExit(f"--tuning-pairs, --related and --n-jobs must be >= 1, got {args.tuning_pairs}, "
-                             f"{args.related}, {args.n_jobs}")
+        if min(args.tuning_pairs, args.related) < 1:
+            raise SystemExit(f"--tuning-pairs and --related must be >= 1, got {args.tuning_pairs} and {args.related}")
         out.mkdir(parents=True, exist_ok=True)
         jobs = list(itertools.product(args.landmarks, args.layouts, args.snrs))
         table = pd.DataFrame(Parallel(n_jobs=args.n_jobs)(
@@ -337,9 +338,8 @@ def main(argv=None) -> None:
         for path in save_table(table, out / "acceptance"):
             print(path)
     if "levels" in args.checks:
-        if min(args.pairs, args.related) < 1 or args.n_jobs < 1 or not all(0 < v < 1 for v in args.levels):
-            raise SystemExit(f"--pairs, --related and --n-jobs must be >= 1 and --levels in (0, 1), got "
-                             f"{args.pairs}, {args.related}, {args.n_jobs}, {args.levels}")
+        if args.related < 1 or not all(0 < v < 1 for v in args.levels):
+            raise SystemExit(f"--related must be >= 1 and --levels in (0, 1), got {args.related} and {args.levels}")
         out.mkdir(parents=True, exist_ok=True)
         jobs = list(itertools.product(args.landmarks, args.layouts, args.snrs, args.levels))
         table = pd.DataFrame(Parallel(n_jobs=args.n_jobs)(
