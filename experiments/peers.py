@@ -353,7 +353,8 @@ def write_markdown(df: pd.DataFrame, path: Path) -> None:
               "| layout, n, SNR | " + " | ".join(methods) + " |", "|---|" + "---|" * len(methods)]
     for (layout, n, snr), cell in df.groupby(["layout", "n_landmarks", "snr_db"], sort=True, observed=True):
         by = cell.set_index("method", drop=False)
-        parts = [not_run(m, n) if m not in by.index or pd.isna(by.loc[m].get("correct_pairs")) else
+        parts = [not_run(m, n) if m not in by.index or pd.isna(by.loc[m, "found"]) else
+                 "not recorded" if pd.isna(by.loc[m].get("correct_pairs")) else
                  f"{100 * by.loc[m, 'correct_pairs'] / by.loc[m, 'common_pairs']:.0f} % correct, "
                  f"{by.loc[m, 'wrong_pairs'] / by.loc[m, 'pairs']:.1f} wrong" for m in methods]
         lines.append(f"| {layout}, {n}, {snr:g} dB | " + " | ".join(parts) + " |")
