@@ -132,15 +132,17 @@ PEER_BOUNDS = {"cpd": (cpd, "CPD_MIN_INLIERS"), "clipper": (clipper, "CLIPPER_MI
                "teaser": (teaser, "TEASER_MIN_INLIERS")}
 #: ``--equal-rate``: (landmarks per map, SNR in dB) of every cell, per layout.
 EQUAL_RATE_CELLS = {layout: [(n, snr) for n in (10, 20) for snr in (15, 20, 25, 30, 35, 40)] +
-                    [(100, snr) for snr in (10, 15, 20, 25, 30, 35, 40)] for layout in ("strip", "interleaved")}
+                    [(100, snr) for snr in (0, 5, 10, 15, 20, 25, 30, 35, 40)] for layout in ("strip", "interleaved")}
 #: The false-merge rate every peer is held to in each cell, and the unrelated tuning pairs it is set on.
 EQUAL_RATE = 1e-3
 EQUAL_RATE_TUNING = 1000
 #: Reported related (and as many unrelated) pairs per cell at most (``--pairs`` for fewer); fewer for the slow
 #: ones (0: not run): CPD takes 0.1 s a merge at 10-20 landmarks and 0.6-1.2 s at 100, where its 1,000 tuning
-#: pairs per cell alone would take hours; CLIPPER and TEASER++ take 0.05-0.7 s a merge at 100 landmarks.
+#: pairs per cell alone would take hours; CLIPPER and TEASER++ take 0.05-0.7 s a merge at 100 landmarks, and
+#: TEASER++ is not run at 0-5 dB (``SLOW_PAIRS``). Keys as ``SLOW_PAIRS``'.
 EQUAL_RATE_PAIRS = 1000
-EQUAL_RATE_SLOW = {("cpd", 10): 500, ("cpd", 20): 500, ("cpd", 100): 0, ("clipper", 100): 500, ("teaser", 100): 500}
+EQUAL_RATE_SLOW = {("cpd", 10): 500, ("cpd", 20): 500, ("cpd", 100): 0, ("clipper", 100): 500, ("teaser", 100): 500,
+                   ("teaser", 100, 0): 0, ("teaser", 100, 5): 0}
 #: The reason the tables give for a method left out of a cell (``SLOW_PAIRS`` or ``EQUAL_RATE_SLOW`` 0).
 NOT_RUN = {("astroalign", 100): "not run: 0.35-5 s a merge",
            ("teaser", 100): "not run: its exact maximum clique takes seconds to minutes a merge here",
@@ -178,6 +180,12 @@ def available_methods() -> list[str]:
     """consensus, paper, groth, then every optional method whose package is importable."""
     optional = [m for m in ("astroalign", "cpd", "clipper", "teaser") if importlib.util.find_spec(PEER_MODULES[m])]
     return ["consensus", "paper", "groth", *optional]
+
+
+def fewer_pairs(table: dict, method: str, n: int, snr, pairs: int) -> int:
+    """The pairs a method gets in a cell: ``table``'s entry for (method, n, SNR), else for (method, n), at most
+    ``pairs`` (``SLOW_PAIRS``, ``EQUAL_RATE_SLOW``)."""
+    return min(table.get((method, n, snr), table.get((method, n), pairs)), pairs)
 
 
 def not_run(method: str, n: int) -> str:
@@ -267,8 +275,7 @@ def compare(out: Path, processes: int = 2, layout: str = "strip", methods=None, 
         raise ValueError(f"layout must be one of {list(CELLS)}, got {layout!r}")
     methods = list(methods or available_methods())
     cells = CELLS[layout]
-    counts = {(m, n, snr): min(SLOW_PAIRS.get((m, n, snr), SLOW_PAIRS.get((m, n), pairs)), pairs)
-              for m in methods for n, snr in cells}
+    counts = {(m, n, snr): fewer_pairs(SLOW_PAIRS, m, n, snr, pairs) for m in methods for n, snr in cells}
     jobs = [(m, layout, n, snr, counts[m, n, snr]) for n, snr in cells for m in methods if counts[m, n, snr]]
     # Slowest first so that the workers finish together (large maps and low SNR are slow).
     jobs.sort(key=lambda j: -j[4] * j[2] ** 2 / (1 + j[3]))
@@ -549,7 +556,7 @@ def equal_rate_jobs(methods, pairs: int, cells) -> list[tuple]:
     """The chunks of the cells: reported related and unrelated pairs, and a peer's tuning pairs."""
     jobs = []
     for (layout, n, snr), method in itertools.product(cells, methods):
-        reported = min(EQUAL_RATE_SLOW.get((method, n), pairs), pairs)
+        reported = fewer_pairs(EQUAL_RATE_SLOW, method, n, snr, pairs)
         if not reported:
             continue
         kinds = [("related", reported), ("unrelated", reported)]
