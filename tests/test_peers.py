@@ -197,3 +197,15 @@ def test_a_cells_row_is_kept_and_read_back(tmp_path, monkeypatch):
     assert peers.cell_path(job).is_file() and not list(tmp_path.glob("*.part"))
     monkeypatch.setattr(mm.simulate, "make_pairs", lambda *a, **k: pytest.fail("a kept cell was measured again"))
     assert peers.run_cell(job) == first
+
+
+def test_fewer_pairs_by_map_size_and_snr():
+    from experiments import peers
+
+    table = {("teaser", 100): 500, ("teaser", 100, 0): 0}
+    assert peers.fewer_pairs(table, "teaser", 100, 0, 1000) == 0
+    assert peers.fewer_pairs(table, "teaser", 100, 10, 1000) == 500
+    assert peers.fewer_pairs(table, "teaser", 100, 10, 200) == 200
+    assert peers.fewer_pairs(table, "clipper", 100, 0, 1000) == 1000
+    jobs = peers.equal_rate_jobs(["teaser", "clipper"], 1000, [("strip", 100, 0)])
+    assert {j[0] for j in jobs} == {"clipper"}
