@@ -451,14 +451,13 @@ def calibration_scores(job) -> dict:
     """``peer_shares``, kept in ``CELL_ROWS`` as soon as it is done (and read back from there)."""
     peer, n = job
     count = SLOW_CALIBRATION_PAIRS.get((peer, n), CALIBRATION_PAIRS[n])
-    key = _rows_key(peer, (kept_row, peer_shares), (OVERLAP, CALIBRATION_SNR, CALIBRATION_SEED, count))
-    return kept_row(CELL_ROWS / f"calibration_{peer}_{n}_{count}_{key}.json", peer_shares, job)
+    key = _rows_key(peer, (kept_row, peer_shares), (OVERLAP, CALIBRATION_SNR, CALIBRATION_SEED))
+    return kept_row(CELL_ROWS / f"calibration_{peer}_{n}_{count}_{key}.json", peer_shares, (peer, n, count))
 
 
 def peer_shares(job) -> dict:
-    """A peer's inlier shares on a map size's unrelated calibration pairs at 30 dB."""
-    peer, n = job
-    count = SLOW_CALIBRATION_PAIRS.get((peer, n), CALIBRATION_PAIRS[n])
+    """A peer's inlier shares on ``count`` unrelated calibration pairs of a map size at 30 dB."""
+    peer, n, count = job
     shares = np.array([len(PEER_PAIRS[peer](mm.simulate.make_pair(n, OVERLAP, CALIBRATION_SNR,
                                                                   rng=CALIBRATION_SEED + i, unrelated=True))) / n
                        for i in range(count)])
