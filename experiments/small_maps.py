@@ -299,9 +299,12 @@ def main(argv=None) -> None:
     parser.add_argument("--levels", type=float, nargs="+", default=list(NFA_LEVELS[1:]),
                         help="triangle acceptance levels of the levels check")
     args = parser.parse_args(argv)
-    if min(args.pairs, args.bound_pairs, args.n_jobs) < 1:
-        raise SystemExit(f"--pairs, --bound-pairs and --n-jobs must be >= 1, got {args.pairs}, {args.bound_pairs} "
-                         f"and {args.n_jobs}")
+    counts = {"--pairs": args.pairs, "--bound-pairs": args.bound_pairs, "--n-jobs": args.n_jobs,
+              "--related": args.related, "--tuning-pairs": args.tuning_pairs}
+    if min(counts.values()) < 1:
+        raise SystemExit(f"{', '.join(counts)} must be >= 1, got {', '.join(map(str, counts.values()))}")
+    if not 0 < args.quantile < 1 or not all(0 < v < 1 for v in args.levels):
+        raise SystemExit(f"--quantile and --levels must be in (0, 1), got {args.quantile} and {args.levels}")
     out = Path(args.out)
     cells = list(itertools.product(args.landmarks, args.snrs))
     if "bound" in args.checks:
@@ -318,8 +321,6 @@ def main(argv=None) -> None:
         for path in save_table(table, out / "holdout"):
             print(path)
     if "calibrated" in args.checks:
-        if not 0 < args.quantile < 1 or args.related < 1:
-            raise SystemExit(f"--quantile must be in (0, 1) and --related >= 1, got {args.quantile}, {args.related}")
         if not (out / "pairs.csv").is_file():
             raise SystemExit(f"--out {out}: no pairs.csv (run experiments.detector there first)")
         tuning = pd.read_csv(out / "pairs.csv")
@@ -328,8 +329,6 @@ def main(argv=None) -> None:
         for path in save_table(table, out / "calibrated"):
             print(path)
     if "acceptance" in args.checks:
-        if min(args.tuning_pairs, args.related) < 1:
-            raise SystemExit(f"--tuning-pairs and --related must be >= 1, got {args.tuning_pairs} and {args.related}")
         out.mkdir(parents=True, exist_ok=True)
         jobs = list(itertools.product(args.landmarks, args.layouts, args.snrs))
         table = pd.DataFrame(Parallel(n_jobs=args.n_jobs)(
@@ -338,8 +337,6 @@ def main(argv=None) -> None:
         for path in save_table(table, out / "acceptance"):
             print(path)
     if "levels" in args.checks:
-        if args.related < 1 or not all(0 < v < 1 for v in args.levels):
-            raise SystemExit(f"--related must be >= 1 and --levels in (0, 1), got {args.related} and {args.levels}")
         out.mkdir(parents=True, exist_ok=True)
         jobs = list(itertools.product(args.landmarks, args.layouts, args.snrs, args.levels))
         table = pd.DataFrame(Parallel(n_jobs=args.n_jobs)(
