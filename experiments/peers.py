@@ -339,32 +339,31 @@ def write_markdown(df: pd.DataFrame, path: Path) -> None:
               "and threshold)."), "",
              "| layout, n, SNR | " + " | ".join(methods) + " | oracle fit | detector |",
              "|---|" + "---|" * (len(methods) + 2)]
+    pair_lines = ["", ("Landmark pairs of the related pairs' merges against the oracle association (each map "
+                       "pair's true common landmarks): correct pairs, % of the common ones, and wrong pairs per "
+                       "related map pair (declared pairs whose landmarks are not the same, or not common)."), "",
+                  "| layout, n, SNR | " + " | ".join(methods) + " |", "|---|" + "---|" * len(methods)]
     for (layout, n, snr), cell in df.groupby(["layout", "n_landmarks", "snr_db"], sort=True, observed=True):
         by = cell.set_index("method", drop=False)
-        parts = []
+        parts, pair_parts = [], []
         for m in methods:
             if m not in by.index or pd.isna(by.loc[m, "found"]):
                 parts.append(not_run(m, n))
+                pair_parts.append(not_run(m, n))
                 continue
             r = by.loc[m]
             wrong = "" if pd.isna(r.get("wrong_merges")) else f"{int(r.wrong_merges)} wrong, "
             parts.append(f"{100 * r.found_rate:.0f} [{100 * r.found_lo:.0f}, {100 * r.found_hi:.0f}] ({int(r.pairs)}), "
                          f"{wrong}{int(r.false_merges)} false, {r.median_s:.3g} s")
+            pair_parts.append("not recorded" if pd.isna(r.get("correct_pairs")) else
+                              f"{100 * r.correct_pairs / r.common_pairs:.0f} % correct, "
+                              f"{r.wrong_pairs / r.pairs:.1f} wrong")
         first = cell.iloc[0]
         det = "" if pd.isna(first.detector_found) else f"{100 * first.detector_found:.0f}"
         lines.append(f"| {layout}, {n}, {snr:g} dB | " + " | ".join(parts) +
                      f" | {100 * first.correspondence_oracle_found:.0f} ({int(first.oracle_pairs)}) | {det} |")
-    lines += ["", ("Landmark pairs of the related pairs' merges against the oracle association (each map pair's "
-                   "true common landmarks): correct pairs, % of the common ones, and wrong pairs per related "
-                   "map pair (declared pairs whose landmarks are not the same, or not common)."), "",
-              "| layout, n, SNR | " + " | ".join(methods) + " |", "|---|" + "---|" * len(methods)]
-    for (layout, n, snr), cell in df.groupby(["layout", "n_landmarks", "snr_db"], sort=True, observed=True):
-        by = cell.set_index("method", drop=False)
-        parts = [not_run(m, n) if m not in by.index or pd.isna(by.loc[m, "found"]) else
-                 "not recorded" if pd.isna(by.loc[m].get("correct_pairs")) else
-                 f"{100 * by.loc[m, 'correct_pairs'] / by.loc[m, 'common_pairs']:.0f} % correct, "
-                 f"{by.loc[m, 'wrong_pairs'] / by.loc[m, 'pairs']:.1f} wrong" for m in methods]
-        lines.append(f"| {layout}, {n}, {snr:g} dB | " + " | ".join(parts) + " |")
+        pair_lines.append(f"| {layout}, {n}, {snr:g} dB | " + " | ".join(pair_parts) + " |")
+    lines += pair_lines
     path.write_text("\n".join(lines) + "\n")
 
 
