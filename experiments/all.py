@@ -145,6 +145,11 @@ STEPS: tuple[Step, ...] = (
     Step("peers_scaling", ("experiments.peers", "--scaling"), ("results/peers",), PEERS),
     # Each peer's bound set per cell (1,000 tuning pairs) so that every method is at one false-merge rate.
     Step("peers_equal_rate", ("experiments.peers", "--equal-rate"), ("results/peers",), PEERS),
+    # The triangle test with its threshold set per cell as the peers' are, two statistics (docs/small_maps.md).
+    Step("small_statistics", ("experiments.small_maps", "--landmarks", "10", "20", "--layouts", "strip",
+                              "interleaved", "--snrs", "10", "15", "20", "25", "30", "35", "40", "--checks",
+                              "statistics", "--tuning-pairs", "10000", "--related", "1000", "--pairs", "10000",
+                              "--n-jobs", "2", "--out", "results/detector/small"), ("results/detector/small",)),
     # consensus beside the best peer at one false-merge rate and the detector, per small-map cell.
     Step("small_reference", ("experiments.small_maps", "--checks", "reference", "--out", "results/detector/small"),
          ("results/detector/small",)),

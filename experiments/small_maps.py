@@ -179,24 +179,32 @@ def _ratio(a: float, b: float) -> float:
     return a / b if b > 0 else np.nan
 
 
+def best_peer(cell: pd.DataFrame) -> pd.Series:
+    """The outside method of most found in one cell of ``experiments.peers --equal-rate``'s table."""
+    peers = cell[(cell.method != "consensus") & (cell.pairs > 0)]
+    return peers.loc[peers.found_rate.idxmax()]
+
+
+def verdict(lo: float, hi: float, peer: pd.Series) -> str:
+    """"ahead", "behind" or "level" (the intervals overlap) of a found rate's interval [lo, hi] against a peer's."""
+    return "ahead" if lo > peer.found_hi else "behind" if hi < peer.found_lo else "level"
+
+
 def reference_table(equal_rate: pd.DataFrame, limit: pd.DataFrame) -> pd.DataFrame:
     """consensus against the best peer at one false-merge rate and the detector at 1e-3, per small-map cell."""
     rows = []
     small = equal_rate[equal_rate.n_landmarks <= 20]
     for (layout, n, snr), cell in small.groupby(["layout", "n_landmarks", "snr_db"]):
-        ours = cell[cell.method == "consensus"].iloc[0]
-        peers = cell[(cell.method != "consensus") & (cell.pairs > 0)]
-        best = peers.loc[peers.found_rate.idxmax()]
+        ours, best = cell[cell.method == "consensus"].iloc[0], best_peer(cell)
         found = limit[(limit.layout == layout) & (limit.n_landmarks == n) & (limit.snr_db == snr)]
         # The detector's pairs are its own (seeds 100000+), with consensus's find on them; NaN without a row.
         detector = found.iloc[0] if len(found) else pd.Series({"found_rate": np.nan, "consensus_found_rate": np.nan})
-        verdict = ("ahead" if ours.found_lo > best.found_hi else "behind" if ours.found_hi < best.found_lo
-                   else "level")
         rows.append({"layout": layout, "n_landmarks": n, "snr_db": snr, "pairs": int(ours.pairs),
                      "consensus_found": ours.found_rate, "consensus_lo": ours.found_lo,
                      "consensus_hi": ours.found_hi, "consensus_false": int(ours.false_merges),
                      "best_peer": best.method, "peer_pairs": int(best.pairs), "peer_found": best.found_rate,
-                     "peer_lo": best.found_lo, "peer_hi": best.found_hi, "vs_peer": verdict,
+                     "peer_lo": best.found_lo, "peer_hi": best.found_hi,
+                     "vs_peer": verdict(ours.found_lo, ours.found_hi, best),
                      "ratio_to_peer": _ratio(ours.found_rate, best.found_rate),
                      "detector_found": detector.found_rate,
                      "consensus_found_detector_pairs": detector.consensus_found_rate,
@@ -206,8 +214,9 @@ def reference_table(equal_rate: pd.DataFrame, limit: pd.DataFrame) -> pd.DataFra
 
 
 def acceptance_rows(n: int, layout: str, snr: float, seeds, unrelated: bool, search: bool) -> list[tuple]:
-    """(seed, triangle log NFA (inf: no test), its transform found, merged) of consensus on the detector's pairs
-    ``seeds``, in batches; without ``search`` the triangle test alone decides."""
+    """(seed, triangle log NFA (inf: no test), its transform found, merged, landmark associations it tested) of
+    consensus on the detector's pairs ``seeds``, in batches; without ``search`` the triangle test alone
+    decides."""
     rows = []
     for start in range(0, len(seeds), BATCH):
         chunk = [int(s) for s in seeds[start:start + BATCH]]
@@ -215,10 +224,10 @@ def acceptance_rows(n: int, layout: str, snr: float, seeds, unrelated: bool, sea
         with detector.recorded_tests(search) as seen:
             merged = mm.merge_batch(sc.p, sc.q, sc.sigma).matched
         for b, seed in enumerate(chunk):
-            nfa, _, _, theta, t = seen.get(sc.p[b].tobytes(), {}).get("triangles", (np.inf, 0, 0, None, None))
+            nfa, _, k, theta, t = seen.get(sc.p[b].tobytes(), {}).get("triangles", (np.inf, 0, 0, None, None))
             found = theta is not None and not unrelated and mm.metrics.transform_found(sc[b], theta, t)
             with np.errstate(divide="ignore"):
-                rows.append((seed, float(np.log(nfa)), bool(found), bool(merged[b])))
+                rows.append((seed, float(np.log(nfa)), bool(found), bool(merged[b]), k))
     return rows
 
 
@@ -244,22 +253,29 @@ def level_table(n: int, layout: str, snr: float, level: float, related: int, hol
             "found_hi": float(hi), "wrong_merges": counts["wrong_merges"]}
 
 
+def kept_rows(check: str, n: int, layout: str, snr: float, sets) -> list[pd.DataFrame]:
+    """``acceptance_rows`` of each set (kind, first seed, count, unrelated, search) of a cell, one frame per
+    set; kept in ``ROWS/<check>_<n>_<layout>_<snr>_<code digest>.csv`` and read back while the code and the
+    counts are the same."""
+    path = ROWS / f"{check}_{n}_{layout}_{snr:g}_{code_digest(detector.__file__)[:12]}.csv"
+    rows = pd.read_csv(path) if path.is_file() else None
+    if rows is None or [int(np.sum(rows.kind == kind)) for kind, *_ in sets] != [c for _, _, c, _, _ in sets]:
+        rows = pd.DataFrame([(kind, *row) for kind, base, count, unrelated, search in sets
+                             for row in acceptance_rows(n, layout, snr, base + np.arange(count), unrelated, search)],
+                            columns=["kind", "seed", "tri_log_nfa", "tri_found", "merged", "tri_pairs"])
+        path.parent.mkdir(parents=True, exist_ok=True)
+        rows.to_csv(path, index=False, float_format="%.10g")
+    return [rows[rows.kind == kind] for kind, *_ in sets]
+
+
 def acceptance_table(n: int, layout: str, snr: float, tuning: int, related: int, holdout: int) -> dict:
     """The triangle test's passes at each of ``NFA_LEVELS`` on unrelated tuning pairs and its found rate on
     related pairs, alone; the default rule's false merges on held-out unrelated pairs (maps of at most
     ``HOLDOUT_MAX_LANDMARKS`` landmarks)."""
     holdout = holdout if n <= HOLDOUT_MAX_LANDMARKS else 0
-    path = ROWS / f"acceptance_{n}_{layout}_{snr:g}_{code_digest(detector.__file__)[:12]}.csv"
-    sets = (("tuning", TUNING_SEED, tuning, True, False), ("related", REPORTED_SEED, related, False, False),
-            ("holdout", HOLDOUT_SEED, holdout, True, True))
-    rows = pd.read_csv(path) if path.is_file() else None
-    if rows is None or [int(np.sum(rows.kind == kind)) for kind, *_ in sets] != [c for _, _, c, _, _ in sets]:
-        rows = pd.DataFrame([(kind, *row) for kind, base, count, unrelated, search in sets
-                             for row in acceptance_rows(n, layout, snr, base + np.arange(count), unrelated, search)],
-                            columns=["kind", "seed", "tri_log_nfa", "tri_found", "merged"])
-        path.parent.mkdir(parents=True, exist_ok=True)
-        rows.to_csv(path, index=False, float_format="%.10g")
-    null, rel, hold = (rows[rows.kind == kind] for kind, *_ in sets)
+    null, rel, hold = kept_rows("acceptance", n, layout, snr, (
+        ("tuning", TUNING_SEED, tuning, True, False), ("related", REPORTED_SEED, related, False, False),
+        ("holdout", HOLDOUT_SEED, holdout, True, True)))
     row = {"n_landmarks": n, "layout": layout, "snr_db": snr, "tuning_pairs": len(null)}
     for level in NFA_LEVELS:
         row[f"tuning_pass_{level:g}"] = int(np.sum(null.tri_log_nfa <= np.log(level)))
@@ -276,6 +292,51 @@ def acceptance_table(n: int, layout: str, snr: float, tuning: int, related: int,
     return row
 
 
+def statistics_table(n: int, layout: str, snr: float, tuning: int, related: int, holdout: int, rate: float,
+                     equal_rate: pd.DataFrame) -> dict:
+    """The triangle test alone with its threshold set per cell as the peers' are, for each of two statistics.
+
+    Each statistic's threshold lets at most ``rate`` x ``tuning`` of the cell's unrelated tuning pairs
+    (seeds 300000+k) through, the peers' rule in ``experiments.peers --equal-rate``; its found rate and wrong
+    merges are on the peers' related pairs (seeds 0+k) and its false passes on held-out unrelated pairs
+    (seeds 600000+k). ``nfa`` ranks a match by its NFA (consensus's statistic); ``count_first`` by its
+    number of landmark associations, then by its NFA; ``<statistic>_limit`` is the first tuning pair not let
+    through (log NFA; minus the associations, log NFA). ``ceiling``: the share of related pairs whose
+    triangle stage proposes a right transform, before any test.
+    """
+    null, rel, hold = kept_rows("statistics", n, layout, snr, (
+        ("tuning", TUNING_SEED, tuning, True, False), ("related", 0, related, False, False),
+        ("holdout", HOLDOUT_SEED, holdout, True, False)))
+    allowed = int(rate * len(null))
+    row = {"n_landmarks": n, "layout": layout, "snr_db": snr, "tuning_pairs": len(null), "allowed": allowed,
+           "related_pairs": len(rel), "ceiling": float(rel.tri_found.mean()),
+           "shipped_found": float(np.mean((rel.tri_log_nfa <= np.log(mm.consensus.match_level(n))) & rel.tri_found))}
+    # Sort keys, strongest evidence first; a pair passes when it sorts before the tuning pair ranked allowed + 1.
+    keys = {"nfa": lambda r: zip(r.tri_log_nfa),
+            "count_first": lambda r: zip(-r.tri_pairs, r.tri_log_nfa)}
+    for name, key in keys.items():
+        ranked = sorted(key(null))
+        limit = ranked[allowed] if allowed < len(ranked) else (np.inf, np.inf)
+
+        def passes(r):
+            return np.isfinite(r.tri_log_nfa.to_numpy()) & np.array([k < limit for k in key(r)], dtype=bool)
+
+        accepted, false = passes(rel), int(passes(hold).sum())
+        found = int(np.sum(accepted & rel.tri_found.to_numpy()))
+        lo, hi = wilson(found, len(rel))
+        row.update({f"{name}_limit": ", ".join(f"{v:.3g}" for v in limit),
+                    f"{name}_tuning_pass": int(passes(null).sum()), f"{name}_found": found / len(rel),
+                    f"{name}_lo": float(lo), f"{name}_hi": float(hi),
+                    f"{name}_wrong": int(np.sum(accepted & ~rel.tri_found.to_numpy())),
+                    f"{name}_holdout_false": false, f"{name}_false_upper": float(wilson(false, len(hold))[1])})
+    cell = equal_rate[(equal_rate.layout == layout) & (equal_rate.n_landmarks == n) & (equal_rate.snr_db == snr)]
+    best = best_peer(cell) if len(cell) else pd.Series({"method": "n/a", "found_rate": np.nan, "found_lo": np.nan,
+                                                         "found_hi": np.nan})
+    row.update(best_peer=best.method, peer_found=best.found_rate, peer_lo=best.found_lo, peer_hi=best.found_hi,
+               count_first_vs_peer=verdict(row["count_first_lo"], row["count_first_hi"], best) if len(cell) else "n/a")
+    return row
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description="The search's bound at one transform; held-out null pairs.")
     parser.add_argument("--landmarks", type=int, nargs="+", default=[10, 20])
@@ -286,15 +347,17 @@ def main(argv=None) -> None:
     parser.add_argument("--peers", default="results/peers/equal_rate.csv",
                         help="experiments.peers --equal-rate's table, for the reference check")
     parser.add_argument("--checks", nargs="+",
-                        choices=("bound", "holdout", "calibrated", "acceptance", "levels", "reference"),
+                        choices=("bound", "holdout", "calibrated", "acceptance", "levels", "statistics", "reference"),
                         default=["bound", "holdout"])
     parser.add_argument("--layouts", nargs="+", choices=("strip", "interleaved"), default=["strip"],
-                        help="layouts of the acceptance and levels checks")
+                        help="layouts of the acceptance, levels and statistics checks")
     parser.add_argument("--tuning-pairs", type=int, default=10_000, help="unrelated tuning pairs per cell of the "
-                        "acceptance check")
+                        "acceptance and statistics checks")
+    parser.add_argument("--rate", type=float, default=1e-3,
+                        help="share of tuning pairs the statistics check's thresholds let through")
     parser.add_argument("--n-jobs", type=int, default=1, help="cells run in parallel (every check but reference)")
     parser.add_argument("--related", type=int, default=500,
-                        help="related pairs per cell of the calibrated, acceptance and levels checks")
+                        help="related pairs per cell of the calibrated, acceptance, levels and statistics checks")
     parser.add_argument("--quantile", type=float, default=2e-4, help="tuning quantile of the calibrated check")
     parser.add_argument("--levels", type=float, nargs="+", default=list(NFA_LEVELS[1:]),
                         help="triangle acceptance levels of the levels check")
@@ -303,8 +366,9 @@ def main(argv=None) -> None:
               "--related": args.related, "--tuning-pairs": args.tuning_pairs}
     if min(counts.values()) < 1:
         raise SystemExit(f"{', '.join(counts)} must be >= 1, got {', '.join(map(str, counts.values()))}")
-    if not 0 < args.quantile < 1 or not all(0 < v < 1 for v in args.levels):
-        raise SystemExit(f"--quantile and --levels must be in (0, 1), got {args.quantile} and {args.levels}")
+    if not all(0 < v < 1 for v in (args.quantile, args.rate, *args.levels)):
+        raise SystemExit(f"--quantile, --rate and --levels must be in (0, 1), got {args.quantile}, {args.rate} and "
+                         f"{args.levels}")
     out = Path(args.out)
     cells = list(itertools.product(args.landmarks, args.snrs))
     if "bound" in args.checks:
@@ -342,6 +406,17 @@ def main(argv=None) -> None:
         table = pd.DataFrame(Parallel(n_jobs=args.n_jobs)(
             delayed(level_table)(n, layout, snr, level, args.related, args.pairs) for n, layout, snr, level in jobs))
         for path in save_table(table, out / "levels"):
+            print(path)
+    if "statistics" in args.checks:
+        if not Path(args.peers).is_file():
+            raise SystemExit(f"statistics check: {args.peers} not found (run experiments.peers --equal-rate first)")
+        equal_rate = pd.read_csv(args.peers)
+        out.mkdir(parents=True, exist_ok=True)
+        jobs = list(itertools.product(args.landmarks, args.layouts, args.snrs))
+        table = pd.DataFrame(Parallel(n_jobs=args.n_jobs)(
+            delayed(statistics_table)(n, layout, snr, args.tuning_pairs, args.related, args.pairs, args.rate,
+                                      equal_rate) for n, layout, snr in jobs))
+        for path in save_table(table, out / "statistics"):
             print(path)
     if "reference" in args.checks:
         missing = [path for path in (Path(args.peers), out / "limit.csv") if not path.is_file()]
