@@ -66,7 +66,15 @@ from .intervals import ratio_interval, wilson  # noqa: E402
 from .paper import run_module  # noqa: E402
 
 #: The sweeps of the experiment: each writes ``<out>/<preset>/table.csv``.
-PRESETS = ("compare", "compare_consensus", "compare_search", "compare_astroalign", "compare_association")
+PRESETS = ("compare", "compare_consensus", "compare_search", "compare_astroalign", "compare_peers", "compare_teaser",
+           "compare_association")
+#: The optional modules each preset's methods need: without them the preset is skipped.
+PRESET_NEEDS = {"compare_astroalign": ("astroalign",), "compare_peers": ("pycpd", "clipperpy"),
+                "compare_teaser": ("teaserpp_python",)}
+#: The outside peers (``compare_peers``, ``compare_teaser``): drawn in ``peers.png`` rather than ``success.png``.
+PEERS = ("cpd", "clipper", "teaser")
+#: Methods that return landmark pairs, not triangle pairs: no triangle counts.
+NO_TRIANGLES = ("astroalign", "search", *PEERS)
 #: The preset with many pairs at low SNR: tabulated on its own (``association.md``), not in the comparison.
 ASSOCIATION = "compare_association"
 #: Where its sweep runs; the found pairs of the runs it aggregated are kept (``found_pairs.csv``) for the intervals.
@@ -83,8 +91,7 @@ def comparison_table(table: pd.DataFrame) -> pd.DataFrame:
     unrelated = table[table.unrelated.astype(bool)][KEYS + ["n_trials", "false_merge_rate"]]
     out = related.merge(unrelated, on=KEYS, how="left", suffixes=("", "_unrelated"))
     out["fp_per_trial"] = out.fp / out.n_trials
-    # astroalign and the search return matched points, not triangles: no triangle counts.
-    out.loc[out.method.isin(["astroalign", "search"]), ["recall_common", "recall_glrt", "fp_per_trial"]] = float("nan")
+    out.loc[out.method.isin(NO_TRIANGLES), ["recall_common", "recall_glrt", "fp_per_trial"]] = float("nan")
     out["false_merges"] = (out.false_merge_rate_unrelated * out.n_trials_unrelated).round().astype("Int64")
     out["n_trials_unrelated"] = out.n_trials_unrelated.astype("Int64")
     cols = KEYS + ["n_trials", "recall_common", "recall_glrt", "fp_per_trial", "correct_per_trial",
@@ -97,9 +104,12 @@ def comparison_table(table: pd.DataFrame) -> pd.DataFrame:
                                                            "snr_db"])
 
 
-def success_figure(comp: pd.DataFrame, out: Path, limit: pd.DataFrame | None = None) -> list[Path]:
-    """Transform found and wrong pairs per trial vs SNR, one column per layout, one line per method and τ rule;
-    ``limit`` (``experiments.detector``'s table) adds the exhaustive ML detector's curve."""
+def success_figure(comp: pd.DataFrame, out: Path, limit: pd.DataFrame | None = None, *, name: str = "success",
+                   curves=None, references=("ml_accurate_rate", "correspondence_found_rate"),
+                   note: str = "τ oracle (dashed) is a limit of the LP") -> list[Path]:
+    """Transform found and wrong pairs per trial vs SNR, one column per layout, one line per method and τ rule
+    (only the (method, τ rule) pairs ``curves``, when given); ``limit`` (``experiments.detector``'s table) adds
+    the exhaustive ML detector's curve and those of its columns ``references``."""
     layouts = sorted(comp.layout.unique(), key=lambda s: s != "strip")
     colour = {m: f"C{k}" for k, m in enumerate(METHOD_ORDER)}
     with plt.rc_context(STYLE):
@@ -108,6 +118,8 @@ def success_figure(comp: pd.DataFrame, out: Path, limit: pd.DataFrame | None = N
             part = comp[comp.layout == layout]
             top, bottom = axes[0, col], axes[1, col]
             for (method, tau), g in part.groupby(["method", "tau"], sort=True):
+                if curves is not None and (method, tau) not in curves:
+                    continue
                 label = method if tau == "none" else f"{method}, τ {tau}"
                 style = {"color": colour.get(method, "C9"), "marker": "o", "ms": 2.5, "label": label,
                          **({"ls": "--", "alpha": 0.5} if tau == "oracle" else {}),
@@ -119,10 +131,10 @@ def success_figure(comp: pd.DataFrame, out: Path, limit: pd.DataFrame | None = N
                 lim = limit[limit.layout == layout]
                 top.plot(lim.snr_db, lim.found_rate, color="k", lw=1.4, ls=":",
                          label="limit: exhaustive ML detector (true σ)")
-                if "ml_accurate_rate" in lim:
+                if "ml_accurate_rate" in lim and "ml_accurate_rate" in references:
                     top.plot(lim.snr_db, lim.ml_accurate_rate, color="0.5", lw=1.0, ls=":",
                              label="ML transform accurate, no threshold")
-                if "correspondence_found_rate" in lim:
+                if "correspondence_found_rate" in lim and "correspondence_found_rate" in references:
                     top.plot(lim.snr_db, lim.correspondence_found_rate, color="0.3", lw=1.0, ls="--",
                              label="limit: ML fit knowing every correspondence")
             if "oracle_wrong_per_trial" in part:
@@ -140,10 +152,10 @@ def success_figure(comp: pd.DataFrame, out: Path, limit: pd.DataFrame | None = N
             for ax in (top, bottom):
                 ax.grid(alpha=0.3, lw=0.4)
         n, ov = comp.n_landmarks.iloc[0], comp.overlap.iloc[0]
-        fig.suptitle(f"{n} landmarks per map, {ov:.0%} common; τ oracle (dashed) is a limit of the LP")
+        fig.suptitle(f"{n} landmarks per map, {ov:.0%} common; {note}")
         fig.legend(*legend_entries(axes), loc="lower center", ncol=3, frameon=False, fontsize=6)
         fig.tight_layout(rect=(0, 0.1, 1, 1))
-        return save_figure(fig, out, "success")
+        return save_figure(fig, out, name)
 
 
 def write_tables(out: Path) -> list[Path]:
@@ -163,7 +175,13 @@ def write_tables(out: Path) -> list[Path]:
     limit = pd.read_csv(detector) if detector.exists() else None
     if limit is not None and "n_landmarks" in limit:  # the detector's rows of the compared maps' size only
         limit = limit[limit.n_landmarks.isin(comp.n_landmarks.unique())]
-    paths += [*save_table(comp, out / "compare"), summary(comp, out / "summary.md"), *success_figure(comp, out, limit)]
+    ours = comp[~comp.method.isin(PEERS)]
+    paths += [*save_table(comp, out / "compare"), summary(comp, out / "summary.md"), *success_figure(ours, out, limit)]
+    if comp.method.isin(PEERS).any():
+        # Six curves a panel: consensus, the paper, the three peers and the detector's limit.
+        curves = {("consensus", "chi2:0.01"), ("paper", "chi2:0.01"), *((peer, "none") for peer in PEERS)}
+        paths += success_figure(comp, out, limit, name="peers", curves=curves, references=(),
+                                note="consensus, the paper and the outside peers")
     paths += save_table(found_table(comp), out / "found")
     if limit is not None:
         paths += save_table(crossing(comp, limit), out / "crossing")
@@ -220,7 +238,7 @@ def association_table(table: pd.DataFrame, pairs: pd.DataFrame | None = None) ->
 
 
 #: Methods of ``found.md``: the ones meant to work where triangles stop discriminating.
-LOW_SNR_METHODS = ("consensus", "search")
+LOW_SNR_METHODS = ("consensus", "search", *PEERS)
 
 
 def found_table(comp: pd.DataFrame) -> pd.DataFrame:
@@ -289,7 +307,7 @@ def crossing(comp: pd.DataFrame, limit: pd.DataFrame) -> pd.DataFrame:
 
 
 #: Methods in the order the summary lists them: the paper, its variants, the baselines.
-METHOD_ORDER = ["paper", "cyclic", "consensus", "search", "groth", "astroalign"]
+METHOD_ORDER = ["paper", "cyclic", "consensus", "search", "groth", "astroalign", *PEERS]
 
 
 def summary(comp: pd.DataFrame, path: Path) -> Path:
@@ -322,8 +340,8 @@ def main(argv=None) -> None:
     presets = list(PRESETS) if args.presets is None else args.presets.split(",")
     if set(presets) - set(PRESETS):
         raise SystemExit(f"--presets: unknown {sorted(set(presets) - set(PRESETS))}; allowed: {', '.join(PRESETS)}")
-    if "compare_astroalign" in presets and importlib.util.find_spec("astroalign") is None:
-        presets.remove("compare_astroalign")  # the optional extra [baselines] is not installed
+    # A preset whose optional methods are not installed is skipped (docs/peers.md builds the peers).
+    presets = [p for p in presets if all(importlib.util.find_spec(m) for m in PRESET_NEEDS.get(p, ()))]
     if not args.tables:
         for preset in presets:
             where = [f"hydra.sweep.dir={ASSOCIATION_SWEEP}"] if preset == ASSOCIATION else []
