@@ -191,6 +191,17 @@ def test_compare_sweep_tables_and_figure_on_both_layouts(tmp_path):
     for timing in out.glob("*/timing.csv"):
         timing.unlink()
     assert {p.name: p.read_bytes() for p in write_tables(out) if p.suffix in (".csv", ".md")} == written
+    # A peer's sweep (here consensus's trials under a peer's name): no triangle counts, its own figure.
+    peer = pd.read_csv(out / "compare" / "table.csv")
+    peer = peer[peer.tau == "chi2:0.01"].assign(method="clipper", tau="none")
+    (out / "compare_peers").mkdir()
+    peer.to_csv(out / "compare_peers" / "table.csv", index=False)
+    made = {p.name for p in write_tables(out)}
+    assert {"peers.png", "success.png"} <= made
+    comp = pd.read_csv(out / "compare.csv")
+    clipper = comp[comp.method == "clipper"]
+    assert len(clipper) == 2 and clipper.recall_common.isna().all() and clipper.found_rate.eq(1).all()
+    assert "clipper" in set(pd.read_csv(out / "found.csv").method)
 
 
 def test_realistic_sweep_summary_against_the_oracle(tmp_path):
