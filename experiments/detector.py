@@ -231,17 +231,21 @@ def recorded_tests(search: bool = True):
     ``search.search_batch`` (both looked up at call time) are wrapped for
     the duration. Yields a dict from a map p's bytes to what its map pair's
     tests gave: ``"triangles"``: (NFA, hypotheses, associations, θ, t) of
-    its last triangle test, ``"search"``: the search's NFA. Without
-    ``search`` the global search declines every pair, so that the triangle
-    test alone decides.
+    its last triangle test, ``"count"``: the same match's
+    ``consensus.count_nfa_batch`` (recorded, not what decides), ``"search"``:
+    the search's NFA. Without ``search`` the global search declines every
+    pair, so that the triangle test alone decides.
     """
     seen, match_nfa_batch, search_batch = {}, mm.consensus.match_nfa_batch, mm.search.search_batch
 
     def recorded_match_nfa_batch(P, Q, theta, t, cov, trial, pairs, n_hypotheses, *args, **kwargs):
         nfa = match_nfa_batch(P, Q, theta, t, cov, trial, pairs, n_hypotheses, *args, **kwargs)
+        by_count = mm.consensus.count_nfa_batch(P, Q, theta, t, cov, trial, pairs, n_hypotheses, *args, **kwargs)
         count = np.bincount(trial, minlength=len(P))
         for b, p in enumerate(P):
-            seen.setdefault(p.tobytes(), {})["triangles"] = (nfa[b], n_hypotheses[b], int(count[b]), theta[b], t[b])
+            tests = seen.setdefault(p.tobytes(), {})
+            tests["triangles"] = (nfa[b], n_hypotheses[b], int(count[b]), theta[b], t[b])
+            tests["count"] = by_count[b]
         return nfa
 
     def recorded_search_batch(P, *args, **kwargs):

@@ -214,9 +214,9 @@ def reference_table(equal_rate: pd.DataFrame, limit: pd.DataFrame) -> pd.DataFra
 
 
 def acceptance_rows(n: int, layout: str, snr: float, seeds, unrelated: bool, search: bool) -> list[tuple]:
-    """(seed, triangle log NFA (inf: no test), its transform found, merged, landmark associations it tested) of
-    consensus on the detector's pairs ``seeds``, in batches; without ``search`` the triangle test alone
-    decides."""
+    """(seed, triangle log NFA (inf: no test), its transform found, merged, landmark associations it tested,
+    the log of their ``consensus.count_nfa_batch``) of consensus on the detector's pairs ``seeds``, in
+    batches; without ``search`` the triangle test alone decides."""
     rows = []
     for start in range(0, len(seeds), BATCH):
         chunk = [int(s) for s in seeds[start:start + BATCH]]
@@ -224,10 +224,12 @@ def acceptance_rows(n: int, layout: str, snr: float, seeds, unrelated: bool, sea
         with detector.recorded_tests(search) as seen:
             merged = mm.merge_batch(sc.p, sc.q, sc.sigma).matched
         for b, seed in enumerate(chunk):
-            nfa, _, k, theta, t = seen.get(sc.p[b].tobytes(), {}).get("triangles", (np.inf, 0, 0, None, None))
+            tests = seen.get(sc.p[b].tobytes(), {})
+            nfa, _, k, theta, t = tests.get("triangles", (np.inf, 0, 0, None, None))
             found = theta is not None and not unrelated and mm.metrics.transform_found(sc[b], theta, t)
             with np.errstate(divide="ignore"):
-                rows.append((seed, float(np.log(nfa)), bool(found), bool(merged[b]), k))
+                rows.append((seed, float(np.log(nfa)), bool(found), bool(merged[b]), k,
+                             float(np.log(tests.get("count", np.inf)))))
     return rows
 
 
@@ -262,7 +264,8 @@ def kept_rows(check: str, n: int, layout: str, snr: float, sets) -> list[pd.Data
     if rows is None or [int(np.sum(rows.kind == kind)) for kind, *_ in sets] != [c for _, _, c, _, _ in sets]:
         rows = pd.DataFrame([(kind, *row) for kind, base, count, unrelated, search in sets
                              for row in acceptance_rows(n, layout, snr, base + np.arange(count), unrelated, search)],
-                            columns=["kind", "seed", "tri_log_nfa", "tri_found", "merged", "tri_pairs"])
+                            columns=["kind", "seed", "tri_log_nfa", "tri_found", "merged", "tri_pairs",
+                                     "tri_log_count_nfa"])
         path.parent.mkdir(parents=True, exist_ok=True)
         rows.to_csv(path, index=False, float_format="%.10g")
     return [rows[rows.kind == kind] for kind, *_ in sets]
@@ -292,48 +295,75 @@ def acceptance_table(n: int, layout: str, snr: float, tuning: int, related: int,
     return row
 
 
-def statistics_table(n: int, layout: str, snr: float, tuning: int, related: int, holdout: int, rate: float,
-                     equal_rate: pd.DataFrame) -> dict:
-    """The triangle test alone with its threshold set per cell as the peers' are, for each of two statistics.
+#: The statistics check's rankings of a match, as sort keys of kept rows (strongest evidence first): its
+#: NFA (consensus's test), its associations with the NFA breaking ties, and its ``consensus.count_nfa_batch``.
+RANKINGS = {"nfa": lambda r: zip(r.tri_log_nfa),
+            "count_first": lambda r: zip(-r.tri_pairs, r.tri_log_nfa),
+            "count_nfa": lambda r: zip(r.tri_log_count_nfa)}
+#: Tuning pairs a level per map size lets through in the worst of its cells: 3 of 10,000 keeps the 95 %
+#: upper bound of the chance rate below 1e-3, the rule the shipped levels follow.
+SIZE_ALLOWED = 3
 
-    Each statistic's threshold lets at most ``rate`` x ``tuning`` of the cell's unrelated tuning pairs
-    (seeds 300000+k) through, the peers' rule in ``experiments.peers --equal-rate``; its found rate and wrong
-    merges are on the peers' related pairs (seeds 0+k) and its false passes on held-out unrelated pairs
-    (seeds 600000+k). ``nfa`` ranks a match by its NFA (consensus's statistic); ``count_first`` by its
-    number of landmark associations, then by its NFA; ``<statistic>_limit`` is the first tuning pair not let
-    through (log NFA; minus the associations, log NFA). ``ceiling``: the share of related pairs whose
-    triangle stage proposes a right transform, before any test.
-    """
-    null, rel, hold = kept_rows("statistics", n, layout, snr, (
+
+def statistics_frames(n: int, layout: str, snr: float, tuning: int, related: int, holdout: int):
+    """The statistics check's kept rows of a cell, triangle test alone: unrelated tuning pairs (seeds 300000+k),
+    the peers' related pairs (seeds 0+k), held-out unrelated pairs (seeds 600000+k)."""
+    return kept_rows("statistics", n, layout, snr, (
         ("tuning", TUNING_SEED, tuning, True, False), ("related", 0, related, False, False),
         ("holdout", HOLDOUT_SEED, holdout, True, False)))
+
+
+def size_level(frames) -> float:
+    """The count NFA's level for one map size: the loosest that lets at most ``SIZE_ALLOWED`` tuning pairs
+    through in every cell (``frames``: each cell's ``statistics_frames``)."""
+    return min(np.sort(null.tri_log_count_nfa.to_numpy())[SIZE_ALLOWED] for null, _, _ in frames)
+
+
+def _passes(r: pd.DataFrame, key, limit) -> np.ndarray:
+    """Which tested rows sort before ``limit`` under a ranking's key."""
+    return np.isfinite(r.tri_log_nfa.to_numpy()) & np.array([k < limit for k in key(r)], dtype=bool)
+
+
+def _rates(name: str, rel: pd.DataFrame, hold: pd.DataFrame, accepted: np.ndarray, false: int) -> dict:
+    found = int(np.sum(accepted & rel.tri_found.to_numpy()))
+    lo, hi = wilson(found, len(rel))
+    return {f"{name}_found": found / len(rel), f"{name}_lo": float(lo), f"{name}_hi": float(hi),
+            f"{name}_wrong": int(np.sum(accepted & ~rel.tri_found.to_numpy())), f"{name}_holdout_false": false,
+            f"{name}_false_upper": float(wilson(false, len(hold))[1])}
+
+
+def statistics_table(n: int, layout: str, snr: float, frames, rate: float, level: float,
+                     equal_rate: pd.DataFrame) -> dict:
+    """The triangle test alone, each ranking with its threshold set per cell as the peers' are, and the count
+    NFA at ``level``, one level for the map size (``size_level``).
+
+    A per-cell threshold lets at most ``rate`` x the cell's tuning pairs through, the peers' rule in
+    ``experiments.peers --equal-rate``; ``<ranking>_limit`` is the first tuning pair it stops (its sort key).
+    Found rates and wrong merges are on the related pairs, false passes on the held-out pairs
+    (``statistics_frames``). ``ceiling``: the share of related pairs whose triangle stage proposes a right
+    transform, before any test; ``shipped_found``: what the shipped level finds.
+    """
+    null, rel, hold = frames
     allowed = int(rate * len(null))
     row = {"n_landmarks": n, "layout": layout, "snr_db": snr, "tuning_pairs": len(null), "allowed": allowed,
            "related_pairs": len(rel), "ceiling": float(rel.tri_found.mean()),
            "shipped_found": float(np.mean((rel.tri_log_nfa <= np.log(mm.consensus.match_level(n))) & rel.tri_found))}
-    # Sort keys, strongest evidence first; a pair passes when it sorts before the tuning pair ranked allowed + 1.
-    keys = {"nfa": lambda r: zip(r.tri_log_nfa),
-            "count_first": lambda r: zip(-r.tri_pairs, r.tri_log_nfa)}
-    for name, key in keys.items():
+    for name, key in RANKINGS.items():
         ranked = sorted(key(null))
         limit = ranked[allowed] if allowed < len(ranked) else (np.inf, np.inf)
-
-        def passes(r):
-            return np.isfinite(r.tri_log_nfa.to_numpy()) & np.array([k < limit for k in key(r)], dtype=bool)
-
-        accepted, false = passes(rel), int(passes(hold).sum())
-        found = int(np.sum(accepted & rel.tri_found.to_numpy()))
-        lo, hi = wilson(found, len(rel))
         row.update({f"{name}_limit": ", ".join(f"{v:.3g}" for v in limit),
-                    f"{name}_tuning_pass": int(passes(null).sum()), f"{name}_found": found / len(rel),
-                    f"{name}_lo": float(lo), f"{name}_hi": float(hi),
-                    f"{name}_wrong": int(np.sum(accepted & ~rel.tri_found.to_numpy())),
-                    f"{name}_holdout_false": false, f"{name}_false_upper": float(wilson(false, len(hold))[1])})
+                    f"{name}_tuning_pass": int(_passes(null, key, limit).sum()),
+                    **_rates(name, rel, hold, _passes(rel, key, limit), int(_passes(hold, key, limit).sum()))})
+    # The count NFA at one level for every cell of the size, as consensus would ship it.
+    null_pass, rel_pass, hold_pass = (r.tri_log_count_nfa.to_numpy() < level for r in (null, rel, hold))
+    row.update({"size_level_log": level, "size_level_tuning_pass": int(null_pass.sum()),
+                **_rates("size_level", rel, hold, rel_pass, int(hold_pass.sum()))})
     cell = equal_rate[(equal_rate.layout == layout) & (equal_rate.n_landmarks == n) & (equal_rate.snr_db == snr)]
     best = best_peer(cell) if len(cell) else pd.Series({"method": "n/a", "found_rate": np.nan, "found_lo": np.nan,
                                                          "found_hi": np.nan})
-    row.update(best_peer=best.method, peer_found=best.found_rate, peer_lo=best.found_lo, peer_hi=best.found_hi,
-               count_first_vs_peer=verdict(row["count_first_lo"], row["count_first_hi"], best) if len(cell) else "n/a")
+    row.update(best_peer=best.method, peer_found=best.found_rate, peer_lo=best.found_lo, peer_hi=best.found_hi)
+    for name in ("count_first", "size_level"):
+        row[f"{name}_vs_peer"] = verdict(row[f"{name}_lo"], row[f"{name}_hi"], best) if len(cell) else "n/a"
     return row
 
 
@@ -411,11 +441,13 @@ def main(argv=None) -> None:
         if not Path(args.peers).is_file():
             raise SystemExit(f"statistics check: {args.peers} not found (run experiments.peers --equal-rate first)")
         equal_rate = pd.read_csv(args.peers)
-        out.mkdir(parents=True, exist_ok=True)
         jobs = list(itertools.product(args.landmarks, args.layouts, args.snrs))
-        table = pd.DataFrame(Parallel(n_jobs=args.n_jobs)(
-            delayed(statistics_table)(n, layout, snr, args.tuning_pairs, args.related, args.pairs, args.rate,
-                                      equal_rate) for n, layout, snr in jobs))
+        frames = dict(zip(jobs, Parallel(n_jobs=args.n_jobs)(
+            delayed(statistics_frames)(*job, args.tuning_pairs, args.related, args.pairs) for job in jobs)))
+        levels = {n: size_level([f for (m, _, _), f in frames.items() if m == n]) for n in args.landmarks}
+        table = pd.DataFrame([statistics_table(*job, frames[job], args.rate, levels[job[0]], equal_rate)
+                              for job in jobs])
+        out.mkdir(parents=True, exist_ok=True)
         for path in save_table(table, out / "statistics"):
             print(path)
     if "reference" in args.checks:

@@ -38,6 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import ConvexHull
 from scipy.special import chdtri, gammaln
+from scipy.stats import binom
 
 from .alignment import (
     align_pairs, fit_alignments, paired_transforms, prediction_var, prediction_vars, reject_outliers_batch,
@@ -80,6 +81,12 @@ GROW_FACTOR = 3.0
 #: unrelated tuning pairs per size, layout and SNR, stays below 1e-3
 #: (docs/tuning.md). The search accepts at ``search.SEARCH_NFA``.
 MATCH_NFA = {10: 1e-2, 20: 1e-3, np.inf: 1e-4}
+#: ``count_nfa_batch``'s d² at which a landmark's chance partner is counted (not the default test). Chosen
+#: among 0.25, 0.5, 1 and 2 by the triangle test's finds at one level per map size (at most 3 of 10,000
+#: unrelated tuning pairs, seeds 300000+, through in any cell) on the detector's related pairs (seeds
+#: 100000+), 10 landmarks in both layouts and 20 on the strip, 10-40 dB: 0.25 and 0.5 tie, 1 and 2 lose
+#: up to 7 points at 15 dB (docs/small_maps.md).
+COUNT_GATE = 0.5
 #: The χ² quantile of the triangle gate: 3 vertices (6 coordinates).
 GATE_6 = float(chdtri(6, GATE_P))
 #: Hypotheses (most inliers first) refitted on their inliers and recounted.
@@ -420,6 +427,27 @@ def match_nfa(P, Q, alignment, pairs, n_hypotheses: int, sigma: float, *, cov_p=
                                  None if hull is None else [hull])[0])
 
 
+def _chance_terms(P, Q, theta, t, cov, trial, pairs, sigma, cov_p, cov_q, hulls):
+    """What both acceptance statistics need of B map pairs: each one's chance area per unit d²
+    (ρ_p · π · √det C, averaged over its mapped q landmarks), the landmarks mapped inside p's hull (its
+    associated ones counted however far out), and each association's Mahalanobis d² (K,)."""
+    B = len(P)
+    cov_p = own_covariances(cov_p, P.shape[1], sigma)
+    x, cov_x = mapped_landmarks(Q, theta, t, cov, sigma, cov_q)
+    typical = np.median(np.trace(cov_p, axis1=-2, axis2=-1) / 2, axis=1)  # a typical p landmark
+    hulls = [ConvexHull(P[b]) for b in range(B)] if hulls is None else hulls
+    inside = np.stack([inside_hull(hull, x[b]) for b, hull in enumerate(hulls)])
+    density = P.shape[1] / np.array([hull.volume for hull in hulls])  # a 2-D hull's "volume" is its area
+    counted = inside.copy()
+    counted[trial, pairs[:, 1]] = True
+    root_det = np.sqrt(np.linalg.det(cov_x + typical[:, None, None, None] * np.eye(2)))
+    unit_area = density * np.pi * np.sum(root_det, axis=1, where=counted) / counted.sum(axis=1)
+    e = P[trial, pairs[:, 0]] - x[trial, pairs[:, 1]]
+    cov_pairs = cov_x[trial, pairs[:, 1]] + cov_p[trial, pairs[:, 0]]
+    d2 = np.einsum("ki,kij,kj->k", e, np.linalg.inv(cov_pairs), e)
+    return unit_area, inside.sum(axis=1), d2
+
+
 def match_nfa_batch(P, Q, theta, t, cov, trial, pairs, n_hypotheses, sigma, cov_p=None, cov_q=None,
                     hulls=None) -> np.ndarray:
     """``match_nfa`` of B map pairs at once, each with its own transform and associations.
@@ -442,31 +470,42 @@ def match_nfa_batch(P, Q, theta, t, cov, trial, pairs, n_hypotheses, sigma, cov_
         NFA of each map pair's match.
     """
     B = len(P)
-    cov_p = own_covariances(cov_p, P.shape[1], sigma)
-    x, cov_x = mapped_landmarks(Q, theta, t, cov, sigma, cov_q)
-    typical = np.median(np.trace(cov_p, axis1=-2, axis2=-1) / 2, axis=1)  # a typical p landmark
-    hulls = [ConvexHull(P[b]) for b in range(B)] if hulls is None else hulls
-    inside = np.stack([inside_hull(hull, x[b]) for b, hull in enumerate(hulls)])
-    density = P.shape[1] / np.array([hull.volume for hull in hulls])  # a 2-D hull's "volume" is its area
-    counted = inside.copy()
-    counted[trial, pairs[:, 1]] = True
-    root_det = np.sqrt(np.linalg.det(cov_x + typical[:, None, None, None] * np.eye(2)))
-    unit_area = density * np.pi * np.sum(root_det, axis=1, where=counted) / counted.sum(axis=1)
-    e = P[trial, pairs[:, 0]] - x[trial, pairs[:, 1]]
-    cov_pairs = cov_x[trial, pairs[:, 1]] + cov_p[trial, pairs[:, 0]]
-    d2 = np.einsum("ki,kij,kj->k", e, np.linalg.inv(cov_pairs), e)
+    unit_area, n_inside, d2 = _chance_terms(P, Q, theta, t, cov, trial, pairs, sigma, cov_p, cov_q, hulls)
     order = np.lexsort((d2, trial))
     trial, d2 = trial[order], d2[order]
     count = np.bincount(trial, minlength=B)
     k = np.arange(len(trial)) - (np.cumsum(count) - count)[trial] + 1  # rank within the map pair
     use = k >= 4
     trial, free, d2 = trial[use], k[use] - 3, d2[use]
-    n_in = np.maximum(inside.sum(axis=1), count)[trial]
+    n_in = np.maximum(n_inside, count)[trial]
     alpha = np.minimum(1.0, unit_area[trial] * d2)
     log_comb = gammaln(n_in + 1) - gammaln(free + 1) - gammaln(n_in - free + 1)
     log_nfa = np.full(B, np.inf)
     np.minimum.at(log_nfa, trial, np.log(n_hypotheses[trial]) + log_comb + free * np.log(np.maximum(alpha, 1e-300)))
     return np.where(np.isfinite(log_nfa), np.exp(log_nfa), np.asarray(n_hypotheses, dtype=float))
+
+
+def count_nfa_batch(P, Q, theta, t, cov, trial, pairs, n_hypotheses, sigma, cov_p=None, cov_q=None,
+                    hulls=None) -> np.ndarray:
+    """The number of false alarms of B matches counted by their associations alone (not the default test).
+
+    Each association is made by the association's own posterior gate, which
+    tightens as the maps crowd, so the count of associations carries the
+    evidence; how close each pair lies adds little on small maps. With k
+    associations, N landmarks mapped inside p's hull and a chance partner
+    for a landmark at probability ``α = ρ_p π √det C · COUNT_GATE`` (the
+    chance area of ``match_nfa`` at d² = ``COUNT_GATE``), the NFA is
+    ``n_hypotheses · P(Bin(N - 3, α) >= k - 3)``: the three associations
+    that fix a hypothesis excepted. Same arguments and returns as
+    ``match_nfa_batch``; a map pair with fewer than 4 associations gets
+    its hypothesis count.
+    """
+    unit_area, n_inside, _ = _chance_terms(P, Q, theta, t, cov, trial, pairs, sigma, cov_p, cov_q, hulls)
+    k = np.bincount(trial, minlength=len(P))
+    free = np.maximum(n_inside, k) - 3
+    alpha = np.minimum(1.0, unit_area * COUNT_GATE)
+    log_nfa = np.log(np.asarray(n_hypotheses, dtype=float)) + binom.logsf(k - 4, free, alpha)
+    return np.where(k >= 4, np.exp(log_nfa), np.asarray(n_hypotheses, dtype=float))
 
 
 def _triangle_correspondences(P, Q, sigma, match: TriangleMatch, log_tau):

@@ -167,3 +167,27 @@ def test_each_size_level_is_the_loosest_the_committed_tuning_pairs_allow():
         assert wilson(cells[f"tuning_pass_{level:g}"], cells.tuning_pairs)[1].max() <= 1e-3
         if f"tuning_pass_{10 * level:g}" in cells:
             assert wilson(cells[f"tuning_pass_{10 * level:g}"], cells.tuning_pairs)[1].max() > 1e-3
+
+
+def test_count_nfa_is_each_map_pair_tested_alone_and_falls_with_the_count():
+    from mapmerge.consensus import count_nfa_batch
+
+    scs = [mm.simulate.make_pair(10, 0.75, 30.0, rng=s) for s in range(3)]
+    P, Q = np.stack([sc.p for sc in scs]), np.stack([sc.q for sc in scs])
+    theta, t = np.array([sc.theta for sc in scs]), np.stack([sc.t for sc in scs])
+    common = [np.argwhere(sc.ids_p[:, None] == sc.ids_q[None]) for sc in scs]
+    trial = np.concatenate([np.full(len(c), b) for b, c in enumerate(common)])
+    pairs, cov, n_hyp, sigma = np.concatenate(common), np.zeros((3, 3, 3)), np.array([4, 4, 4]), np.array(
+        [sc.sigma for sc in scs])
+    nfa = count_nfa_batch(P, Q, theta, t, cov, trial, pairs, n_hyp, sigma)
+    alone = [count_nfa_batch(P[b:b + 1], Q[b:b + 1], theta[b:b + 1], t[b:b + 1], cov[b:b + 1],
+                             np.zeros(len(common[b]), dtype=int), common[b], n_hyp[b:b + 1], sigma[b:b + 1])[0]
+             for b in range(3)]
+    assert np.allclose(nfa, alone, rtol=1e-12) and (nfa < 1).all()
+    # One association fewer is more likely by chance; under 4 the NFA is the hypothesis count.
+    fewer = count_nfa_batch(P[:1], Q[:1], theta[:1], t[:1], cov[:1], np.zeros(len(common[0]) - 1, dtype=int),
+                            common[0][1:], n_hyp[:1], sigma[:1])[0]
+    assert fewer > nfa[0]
+    three = count_nfa_batch(P[:1], Q[:1], theta[:1], t[:1], cov[:1], np.zeros(3, dtype=int), common[0][:3],
+                            n_hyp[:1], sigma[:1])[0]
+    assert three == 4

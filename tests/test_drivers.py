@@ -136,15 +136,25 @@ def test_small_maps_statistics_check_holds_each_statistic_to_the_tuning_rate(tmp
     peers = pd.DataFrame([{"layout": "strip", "n_landmarks": 10, "snr_db": 20.0, "method": method, "pairs": 500,
                            "found_rate": found, "found_lo": found - 0.05, "found_hi": found + 0.05}
                           for method, found in (("consensus", 0.4), ("cpd", 0.5), ("teaser", 0.45))])
-    row = small_maps.statistics_table(10, "strip", 20.0, 40, 12, 20, 0.1, peers)
+    frames = small_maps.statistics_frames(10, "strip", 20.0, 40, 12, 20)
+    assert [len(f) for f in frames] == [40, 12, 20]
+    level = small_maps.size_level([frames])
+    # The size's level lets at most SIZE_ALLOWED tuning pairs through (its only cell here).
+    assert np.sum(frames[0].tri_log_count_nfa < level) <= small_maps.SIZE_ALLOWED
+    row = small_maps.statistics_table(10, "strip", 20.0, frames, 0.1, level, peers)
     assert (row["tuning_pairs"], row["allowed"], row["related_pairs"]) == (40, 4, 12)
-    for name in ("nfa", "count_first"):
-        # At most the allowed share of the tuning pairs passes; nothing passes that the triangles did not get right.
-        assert row[f"{name}_tuning_pass"] <= 4 and 0 <= row[f"{name}_holdout_false"] <= 20
-        assert row[f"{name}_found"] <= row["ceiling"] and row[f"{name}_lo"] <= row[f"{name}_found"] <= row[f"{name}_hi"]
+    assert row["size_level_tuning_pass"] <= small_maps.SIZE_ALLOWED
+    for name in (*small_maps.RANKINGS, "size_level"):
+        # Nothing passes that the triangles did not get right; the interval holds the rate.
+        assert 0 <= row[f"{name}_holdout_false"] <= 20 and row[f"{name}_found"] <= row["ceiling"]
+        assert row[f"{name}_lo"] <= row[f"{name}_found"] <= row[f"{name}_hi"]
+    for name in small_maps.RANKINGS:
+        assert row[f"{name}_tuning_pass"] <= 4
     assert row["shipped_found"] <= row["ceiling"] and row["best_peer"] == "cpd" and row["peer_found"] == 0.5
     assert row["count_first_vs_peer"] in ("ahead", "level", "behind")
     assert len(list(tmp_path.glob("statistics_10_strip_20_*.csv"))) == 1
     # Kept rows are read back: the same row, and without a cell in the peers' table no peer.
-    again = small_maps.statistics_table(10, "strip", 20.0, 40, 12, 20, 0.1, peers.iloc[:0])
+    again = small_maps.statistics_table(10, "strip", 20.0, small_maps.statistics_frames(10, "strip", 20.0, 40, 12, 20),
+                                        0.1, level, peers.iloc[:0])
     assert again["nfa_found"] == row["nfa_found"] and again["count_first_vs_peer"] == "n/a"
+
