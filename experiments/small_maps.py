@@ -3,8 +3,8 @@
     python -m experiments.small_maps --landmarks 10 20 --snrs 20 30 --pairs 10000 --bound-pairs 2000 \
         --out results/detector/small
 
-Two checks beside ``experiments.detector``'s tables (``stages``), on
-unrelated pairs only:
+Checks beside ``experiments.detector``'s tables (``stages``), chosen with
+``--checks``:
 
 1. ``bound``: the global search's a contrario test at one fixed transform.
    On unrelated pairs of the detector's tuning seeds (300000+k), the
@@ -49,7 +49,16 @@ unrelated pairs only:
    on ``--related`` related pairs of seeds 0+k, the pairs
    ``experiments.peers --equal-rate`` gives every peer, so the rates
    compare with the peers' at one false-merge rate;
-6. ``reference``: no merging. Per small-map cell (up to 20 landmarks) of
+6. ``statistics``: the triangle test alone (the search declining) on
+   ``--tuning-pairs`` unrelated tuning pairs (seeds 300000+k), the peers'
+   ``--related`` related pairs (seeds 0+k) and ``--pairs`` held-out
+   unrelated pairs (seeds 600000+k). Each ranking of ``RANKINGS`` (the
+   NFA, the association count, the count NFA) gets a threshold per cell
+   as the peers do (at most ``--rate`` of the tuning pairs through); the
+   count NFA also gets one level per map size (``size_level``), as
+   consensus would ship it. Found rates, wrong merges, held-out false
+   passes, the triangle stage's ceiling and the best peer of ``--peers``;
+7. ``reference``: no merging. Per small-map cell (up to 20 landmarks) of
    ``results/peers/equal_rate.csv`` (``--peers``), consensus beside the
    best outside peer at one false-merge rate and the exhaustive detector
    at 1e-3 (``limit.csv`` in ``--out``, strip layout, on its own pairs,
@@ -316,7 +325,8 @@ def statistics_frames(n: int, layout: str, snr: float, tuning: int, related: int
 def size_level(frames) -> float:
     """The count NFA's level for one map size: the loosest that lets at most ``SIZE_ALLOWED`` tuning pairs
     through in every cell (``frames``: each cell's ``statistics_frames``)."""
-    return min(np.sort(null.tri_log_count_nfa.to_numpy())[SIZE_ALLOWED] for null, _, _ in frames)
+    return min(np.sort(null.tri_log_count_nfa.to_numpy())[SIZE_ALLOWED] if len(null) > SIZE_ALLOWED else np.inf
+               for null, _, _ in frames)
 
 
 def _passes(r: pd.DataFrame, key, limit) -> np.ndarray:
