@@ -499,6 +499,11 @@ def count_nfa_batch(P, Q, theta, t, cov, trial, pairs, n_hypotheses, sigma, cov_
     that fix a hypothesis excepted. Same arguments and returns as
     ``match_nfa_batch``; a map pair with fewer than 4 associations gets
     its hypothesis count.
+
+    It is not a bound: ``COUNT_GATE`` is far smaller than the association's
+    own gate, so chance is understated by orders of magnitude (on unrelated
+    tuning pairs 3 in 10,000 reach about e^-13 at 10 landmarks and e^-26 at
+    20). Only its order is used, against a level calibrated per map size.
     """
     unit_area, n_inside, _ = _chance_terms(P, Q, theta, t, cov, trial, pairs, sigma, cov_p, cov_q, hulls)
     k = np.bincount(trial, minlength=len(P))
