@@ -130,6 +130,8 @@ STEPS: tuple[Step, ...] = (
     _compare("compare_consensus"),
     _compare("compare_search"),
     _compare("compare_astroalign", ("astroalign",)),
+    _compare("compare_peers", ("pycpd", "clipperpy")),
+    _compare("compare_teaser", ("teaserpp_python",)),
     _compare("compare_association"),
     Step("realistic", ("experiments.realistic",), ("results/realistic",)),
     Step("victoria", ("experiments.victoria",), ("results/victoria_park",), ("gtsam", "astroalign")),
