@@ -58,7 +58,13 @@ Checks beside ``experiments.detector``'s tables (``stages``), chosen with
    count NFA also gets one level per map size (``size_level``), as
    consensus would ship it. Found rates, wrong merges, held-out false
    passes, the triangle stage's ceiling and the best peer of ``--peers``;
-7. ``reference``: no merging. Per small-map cell (up to 20 landmarks) of
+7. ``count``: consensus as shipped, the search included, but with its
+   triangle test ranked by ``consensus.count_nfa_batch`` at the levels per
+   map size ``COUNT_LEVELS`` (what-if runs, ``count_acceptance``): false
+   merges on ``--pairs`` held-out unrelated pairs (seeds 600000+k), found
+   rate and wrong merges on ``--related`` related pairs (seeds 0+k), beside
+   the best peer of ``--peers``;
+8. ``reference``: no merging. Per small-map cell (up to 20 landmarks) of
    ``results/peers/equal_rate.csv`` (``--peers``), consensus beside the
    best outside peer at one false-merge rate and the exhaustive detector
    at 1e-3 (``limit.csv`` in ``--out``, strip layout, on its own pairs,
@@ -242,26 +248,63 @@ def acceptance_rows(n: int, layout: str, snr: float, seeds, unrelated: bool, sea
     return rows
 
 
-def level_table(n: int, layout: str, snr: float, level: float, related: int, holdout: int) -> dict:
-    """consensus with its triangle test accepting at NFA <= ``level``: false merges on held-out unrelated pairs,
-    found rate and wrong merges on related pairs of seeds 0+k."""
+def merged_counts(n: int, layout: str, snr: float, related: int, holdout: int) -> dict:
+    """consensus under whatever acceptance is in force: false merges on ``holdout`` held-out unrelated pairs
+    (seeds 600000+k), found rate (with its interval) and wrong merges on ``related`` related pairs of seeds
+    0+k, the pairs ``experiments.peers --equal-rate`` gives every peer."""
     counts = {"false_merges": 0, "found": 0, "wrong_merges": 0}
-    with triangle_acceptance(level):
-        for unrelated, base, count in ((True, HOLDOUT_SEED, holdout), (False, 0, related)):
-            for start in range(0, count, BATCH):
-                seeds = [base + k for k in range(start, min(start + BATCH, count))]
-                sc = mm.simulate.make_pairs(n, 0.75, snr, seeds, unrelated=unrelated, layout=layout)
-                err = mm.metrics.map_errors_batch(sc, mm.merge_batch(sc.p, sc.q, sc.sigma))
-                if unrelated:
-                    counts["false_merges"] += int(err["matched"].sum())
-                else:
-                    counts["found"] += int((err["matched"] & err["transform_found"]).sum())
-                    counts["wrong_merges"] += int((err["matched"] & ~err["transform_found"]).sum())
+    for unrelated, base, count in ((True, HOLDOUT_SEED, holdout), (False, 0, related)):
+        for start in range(0, count, BATCH):
+            seeds = [base + k for k in range(start, min(start + BATCH, count))]
+            sc = mm.simulate.make_pairs(n, 0.75, snr, seeds, unrelated=unrelated, layout=layout)
+            err = mm.metrics.map_errors_batch(sc, mm.merge_batch(sc.p, sc.q, sc.sigma))
+            if unrelated:
+                counts["false_merges"] += int(err["matched"].sum())
+            else:
+                counts["found"] += int((err["matched"] & err["transform_found"]).sum())
+                counts["wrong_merges"] += int((err["matched"] & ~err["transform_found"]).sum())
     lo, hi = wilson(counts["found"], related)
-    return {"n_landmarks": n, "layout": layout, "snr_db": snr, "match_nfa": level, "holdout_pairs": holdout,
-            "false_merges": counts["false_merges"], "false_upper": float(wilson(counts["false_merges"], holdout)[1]),
-            "related_pairs": related, "found_rate": counts["found"] / related, "found_lo": float(lo),
-            "found_hi": float(hi), "wrong_merges": counts["wrong_merges"]}
+    return {"holdout_pairs": holdout, "false_merges": counts["false_merges"],
+            "false_upper": float(wilson(counts["false_merges"], holdout)[1]), "related_pairs": related,
+            "found_rate": counts["found"] / related, "found_lo": float(lo), "found_hi": float(hi),
+            "wrong_merges": counts["wrong_merges"]}
+
+
+def level_table(n: int, layout: str, snr: float, level: float, related: int, holdout: int) -> dict:
+    """consensus with its triangle test accepting at NFA <= ``level`` (``merged_counts``)."""
+    with triangle_acceptance(level):
+        return {"n_landmarks": n, "layout": layout, "snr_db": snr, "match_nfa": level,
+                **merged_counts(n, layout, snr, related, holdout)}
+
+
+#: Log levels of ``consensus.count_nfa_batch`` per map size for the ``count`` check (a what-if, not the
+#: library's): the statistics check's ``size_level_log`` at 5, 10, 15, 20, 30, 50 and 100 landmarks (tuning
+#: seeds 300000+, docs/small_maps.md); beyond 100 landmarks the 100-landmark level.
+COUNT_LEVELS = {5: -4.4255, 10: -13.3282, 15: -20.7435, 20: -25.6355, 30: -40.9747, 50: -54.8068,
+                np.inf: -86.6396}
+
+
+def count_acceptance():
+    """consensus's triangle test ranked by ``consensus.count_nfa_batch`` at ``COUNT_LEVELS`` for the duration:
+    what-if runs of the count NFA as the default test, not a setting of the library."""
+    return mock.patch.multiple(mm.consensus, match_nfa_batch=mm.consensus.count_nfa_batch,
+                               MATCH_NFA={most: float(np.exp(v)) for most, v in COUNT_LEVELS.items()})
+
+
+def count_table(n: int, layout: str, snr: float, related: int, holdout: int, equal_rate: pd.DataFrame) -> dict:
+    """consensus as shipped but for its triangle test, the count NFA at ``COUNT_LEVELS`` (the search
+    included): ``merged_counts`` beside the best peer at one false-merge rate."""
+    with count_acceptance():
+        row = {"n_landmarks": n, "layout": layout, "snr_db": snr,
+               "log_level": COUNT_LEVELS[min(most for most in COUNT_LEVELS if most >= n)],
+               **merged_counts(n, layout, snr, related, holdout)}
+    cell = equal_rate[(equal_rate.layout == layout) & (equal_rate.n_landmarks == n) & (equal_rate.snr_db == snr)]
+    if len(cell):
+        ours, best = cell[cell.method == "consensus"].iloc[0], best_peer(cell)
+        row.update(shipped_found=ours.found_rate, best_peer=best.method, peer_found=best.found_rate,
+                   peer_lo=best.found_lo, peer_hi=best.found_hi, vs_peer=verdict(row["found_lo"], row["found_hi"],
+                                                                                 best))
+    return row
 
 
 def kept_rows(check: str, n: int, layout: str, snr: float, sets) -> list[pd.DataFrame]:
@@ -387,7 +430,8 @@ def main(argv=None) -> None:
     parser.add_argument("--peers", default="results/peers/equal_rate.csv",
                         help="experiments.peers --equal-rate's table, for the reference check")
     parser.add_argument("--checks", nargs="+",
-                        choices=("bound", "holdout", "calibrated", "acceptance", "levels", "statistics", "reference"),
+                        choices=("bound", "holdout", "calibrated", "acceptance", "levels", "statistics", "count",
+                                 "reference"),
                         default=["bound", "holdout"])
     parser.add_argument("--layouts", nargs="+", choices=("strip", "interleaved"), default=["strip"],
                         help="layouts of the acceptance, levels and statistics checks")
@@ -459,6 +503,16 @@ def main(argv=None) -> None:
                               for job in jobs])
         out.mkdir(parents=True, exist_ok=True)
         for path in save_table(table, out / "statistics"):
+            print(path)
+    if "count" in args.checks:
+        if not Path(args.peers).is_file():
+            raise SystemExit(f"count check: {args.peers} not found (run experiments.peers --equal-rate first)")
+        equal_rate = pd.read_csv(args.peers)
+        jobs = list(itertools.product(args.landmarks, args.layouts, args.snrs))
+        table = pd.DataFrame(Parallel(n_jobs=args.n_jobs)(
+            delayed(count_table)(*job, args.related, args.pairs, equal_rate) for job in jobs))
+        out.mkdir(parents=True, exist_ok=True)
+        for path in save_table(table, out / "count"):
             print(path)
     if "reference" in args.checks:
         missing = [path for path in (Path(args.peers), out / "limit.csv") if not path.is_file()]

@@ -158,3 +158,24 @@ def test_small_maps_statistics_check_holds_each_statistic_to_the_tuning_rate(tmp
                                         0.1, level, peers.iloc[:0])
     assert again["nfa_found"] == row["nfa_found"] and again["count_first_vs_peer"] == "n/a"
 
+
+
+def test_small_maps_count_check_swaps_the_triangle_test_and_restores_it():
+    from mapmerge import consensus
+    from experiments import small_maps
+
+    default, nfa = consensus.MATCH_NFA, consensus.match_nfa_batch
+    with small_maps.count_acceptance():
+        assert consensus.match_nfa_batch is consensus.count_nfa_batch
+        assert np.log(consensus.match_level(10)) == pytest.approx(small_maps.COUNT_LEVELS[10])
+        assert np.log(consensus.match_level(12)) == pytest.approx(small_maps.COUNT_LEVELS[15])
+    assert consensus.MATCH_NFA is default and consensus.match_nfa_batch is nfa
+    peers = pd.DataFrame([{"layout": "strip", "n_landmarks": 10, "snr_db": 20.0, "method": method, "pairs": 500,
+                           "found_rate": found, "found_lo": found - 0.05, "found_hi": found + 0.05}
+                          for method, found in (("consensus", 0.4), ("cpd", 0.5))])
+    row = small_maps.count_table(10, "strip", 20.0, 12, 3, peers)
+    assert (row["related_pairs"], row["holdout_pairs"], row["best_peer"], row["shipped_found"]) == (12, 3, "cpd", 0.4)
+    assert row["found_lo"] <= row["found_rate"] <= row["found_hi"] and 0 <= row["false_merges"] <= 3
+    # The levels check's counts are the same function's: at the shipped level, the shipped merges.
+    shipped = small_maps.level_table(10, "strip", 20.0, consensus.match_level(10), 12, 3)
+    assert shipped["match_nfa"] == consensus.match_level(10) and 0 <= shipped["wrong_merges"] <= 12
