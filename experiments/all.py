@@ -152,6 +152,11 @@ STEPS: tuple[Step, ...] = (
                               "interleaved", "--snrs", "10", "15", "20", "25", "30", "35", "40", "--checks",
                               "statistics", "--tuning-pairs", "10000", "--related", "1000", "--pairs", "10000",
                               "--n-jobs", "2", "--out", "results/detector/small"), ("results/detector/small",)),
+    # consensus with the count NFA as its triangle test, the search included (what-if; docs/small_maps.md).
+    Step("small_count", ("experiments.small_maps", "--landmarks", "10", "20", "--layouts", "strip", "interleaved",
+                         "--snrs", "10", "15", "20", "25", "30", "35", "40", "--checks", "count", "--related", "1000",
+                         "--pairs", "10000", "--n-jobs", "2", "--out", "results/detector/small"),
+         ("results/detector/small",)),
     # consensus beside the best peer at one false-merge rate and the detector, per small-map cell.
     Step("small_reference", ("experiments.small_maps", "--checks", "reference", "--out", "results/detector/small"),
          ("results/detector/small",)),
