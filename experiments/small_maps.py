@@ -200,6 +200,11 @@ def best_peer(cell: pd.DataFrame) -> pd.Series:
     return peers.loc[peers.found_rate.idxmax()]
 
 
+def peer_cell(equal_rate: pd.DataFrame, layout: str, n: int, snr: float) -> pd.DataFrame:
+    """The rows of one cell of ``experiments.peers --equal-rate``'s table."""
+    return equal_rate[(equal_rate.layout == layout) & (equal_rate.n_landmarks == n) & (equal_rate.snr_db == snr)]
+
+
 def verdict(lo: float, hi: float, peer: pd.Series) -> str:
     """"ahead", "behind" or "level" (the intervals overlap) of a found rate's interval [lo, hi] against a peer's."""
     return "ahead" if lo > peer.found_hi else "behind" if hi < peer.found_lo else "level"
@@ -295,10 +300,9 @@ def count_table(n: int, layout: str, snr: float, related: int, holdout: int, equ
     """consensus as shipped but for its triangle test, the count NFA at ``COUNT_LEVELS`` (the search
     included): ``merged_counts`` beside the best peer at one false-merge rate."""
     with count_acceptance():
-        row = {"n_landmarks": n, "layout": layout, "snr_db": snr,
-               "log_level": COUNT_LEVELS[min(most for most in COUNT_LEVELS if most >= n)],
+        row = {"n_landmarks": n, "layout": layout, "snr_db": snr, "log_level": np.log(mm.consensus.match_level(n)),
                **merged_counts(n, layout, snr, related, holdout)}
-    cell = equal_rate[(equal_rate.layout == layout) & (equal_rate.n_landmarks == n) & (equal_rate.snr_db == snr)]
+    cell = peer_cell(equal_rate, layout, n, snr)
     if len(cell):
         ours, best = cell[cell.method == "consensus"].iloc[0], best_peer(cell)
         row.update(shipped_found=ours.found_rate, best_peer=best.method, peer_found=best.found_rate,
@@ -411,7 +415,7 @@ def statistics_table(n: int, layout: str, snr: float, frames, rate: float, level
     null_pass, rel_pass, hold_pass = (r.tri_log_count_nfa.to_numpy() < level for r in (null, rel, hold))
     row.update({"size_level_log": level, "size_level_tuning_pass": int(null_pass.sum()),
                 **_rates("size_level", rel, hold, rel_pass, int(hold_pass.sum()))})
-    cell = equal_rate[(equal_rate.layout == layout) & (equal_rate.n_landmarks == n) & (equal_rate.snr_db == snr)]
+    cell = peer_cell(equal_rate, layout, n, snr)
     best = best_peer(cell) if len(cell) else pd.Series({"method": "n/a", "found_rate": np.nan, "found_lo": np.nan,
                                                          "found_hi": np.nan})
     row.update(best_peer=best.method, peer_found=best.found_rate, peer_lo=best.found_lo, peer_hi=best.found_hi)
@@ -434,7 +438,7 @@ def main(argv=None) -> None:
                                  "reference"),
                         default=["bound", "holdout"])
     parser.add_argument("--layouts", nargs="+", choices=("strip", "interleaved"), default=["strip"],
-                        help="layouts of the acceptance, levels and statistics checks")
+                        help="layouts of the acceptance, levels, statistics and count checks")
     parser.add_argument("--tuning-pairs", type=int, default=10_000, help="unrelated tuning pairs per cell of the "
                         "acceptance and statistics checks")
     parser.add_argument("--rate", type=float, default=1e-3,
@@ -455,6 +459,7 @@ def main(argv=None) -> None:
                          f"{args.levels}")
     out = Path(args.out)
     cells = list(itertools.product(args.landmarks, args.snrs))
+    layout_cells = list(itertools.product(args.landmarks, args.layouts, args.snrs))
     if "bound" in args.checks:
         table = pd.DataFrame(Parallel(n_jobs=args.n_jobs)(delayed(bound_table)(n, snr, args.bound_pairs)
                                                           for n, snr in cells))
@@ -478,10 +483,9 @@ def main(argv=None) -> None:
             print(path)
     if "acceptance" in args.checks:
         out.mkdir(parents=True, exist_ok=True)
-        jobs = list(itertools.product(args.landmarks, args.layouts, args.snrs))
         table = pd.DataFrame(Parallel(n_jobs=args.n_jobs)(
             delayed(acceptance_table)(n, layout, snr, args.tuning_pairs, args.related, args.pairs)
-            for n, layout, snr in jobs))
+            for n, layout, snr in layout_cells))
         for path in save_table(table, out / "acceptance"):
             print(path)
     if "levels" in args.checks:
@@ -491,27 +495,23 @@ def main(argv=None) -> None:
             delayed(level_table)(n, layout, snr, level, args.related, args.pairs) for n, layout, snr, level in jobs))
         for path in save_table(table, out / "levels"):
             print(path)
-    if "statistics" in args.checks:
+    if {"statistics", "count"} & set(args.checks):
         if not Path(args.peers).is_file():
-            raise SystemExit(f"statistics check: {args.peers} not found (run experiments.peers --equal-rate first)")
+            raise SystemExit(f"statistics and count checks: {args.peers} not found (run experiments.peers "
+                             "--equal-rate first)")
         equal_rate = pd.read_csv(args.peers)
-        jobs = list(itertools.product(args.landmarks, args.layouts, args.snrs))
-        frames = dict(zip(jobs, Parallel(n_jobs=args.n_jobs)(
-            delayed(statistics_frames)(*job, args.tuning_pairs, args.related, args.pairs) for job in jobs)))
-        levels = {n: size_level([f for (m, _, _), f in frames.items() if m == n]) for n in args.landmarks}
-        table = pd.DataFrame([statistics_table(*job, frames[job], args.rate, levels[job[0]], equal_rate)
-                              for job in jobs])
         out.mkdir(parents=True, exist_ok=True)
+    if "statistics" in args.checks:
+        frames = dict(zip(layout_cells, Parallel(n_jobs=args.n_jobs)(
+            delayed(statistics_frames)(*cell, args.tuning_pairs, args.related, args.pairs) for cell in layout_cells)))
+        levels = {n: size_level([f for (m, _, _), f in frames.items() if m == n]) for n in args.landmarks}
+        table = pd.DataFrame([statistics_table(*cell, frames[cell], args.rate, levels[cell[0]], equal_rate)
+                              for cell in layout_cells])
         for path in save_table(table, out / "statistics"):
             print(path)
     if "count" in args.checks:
-        if not Path(args.peers).is_file():
-            raise SystemExit(f"count check: {args.peers} not found (run experiments.peers --equal-rate first)")
-        equal_rate = pd.read_csv(args.peers)
-        jobs = list(itertools.product(args.landmarks, args.layouts, args.snrs))
         table = pd.DataFrame(Parallel(n_jobs=args.n_jobs)(
-            delayed(count_table)(*job, args.related, args.pairs, equal_rate) for job in jobs))
-        out.mkdir(parents=True, exist_ok=True)
+            delayed(count_table)(*cell, args.related, args.pairs, equal_rate) for cell in layout_cells))
         for path in save_table(table, out / "count"):
             print(path)
     if "reference" in args.checks:
