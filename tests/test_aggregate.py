@@ -263,3 +263,19 @@ def test_sweeps_without_a_name_get_directories_of_their_own():
     unnamed = compose_config([], hydra=True).hydra.sweep.dir
     assert unnamed.startswith("outputs/sweeps/default/20") and len(unnamed) == len("outputs/sweeps/default/") + 19
     assert compose_config(["name=mine"], hydra=True).hydra.sweep.dir == "outputs/sweeps/mine"
+
+
+def test_compare_skips_a_preset_whose_methods_are_not_installed(tmp_path, monkeypatch):
+    import importlib.util
+
+    from experiments import compare
+
+    find_spec, ran = importlib.util.find_spec, []
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "clipperpy" else find_spec(name))
+    monkeypatch.setattr(compare, "run_module", lambda argv: ran.append(argv[2]))
+    with pytest.raises(FileNotFoundError):  # nothing ran, so no table to build
+        compare.main(["--presets", "compare_peers,compare_search,compare_teaser", "--out", str(tmp_path)])
+    expected = ["experiment=compare_search"]
+    if find_spec("teaserpp_python") is not None:
+        expected.append("experiment=compare_teaser")
+    assert ran == expected
