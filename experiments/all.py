@@ -98,6 +98,17 @@ def _compare(preset: str, needs: tuple[str, ...] = ()) -> Step:
 
 
 PEERS = ("pycpd", "clipperpy", "teaserpp_python")
+#: Where the small-map checks write, and the cells of the levels, statistics and count checks: 10 and 20
+#: landmarks, both layouts, 10-40 dB.
+SMALL = "results/detector/small"
+SMALL_CELLS = ("--landmarks", "10", "20", "--layouts", "strip", "interleaved", "--snrs", "10", "15", "20", "25", "30",
+               "35", "40")
+
+
+def _small_maps(name: str, *args: str) -> Step:
+    """A step of ``experiments.small_maps`` on 2 workers, writing to ``SMALL``."""
+    return Step(name, ("experiments.small_maps", *args, "--n-jobs", "2", "--out", SMALL), (SMALL,))
+
 
 STEPS: tuple[Step, ...] = (
     Step("paper", ("experiments.paper",), ("results/paper", "results/paper/fig1", "results/paper/fig2",
@@ -110,22 +121,16 @@ STEPS: tuple[Step, ...] = (
                             "--layouts", "strip", "--trials", "500", "--null-pairs", "10000", "--false-alarm", "1e-3",
                             "--maximiser", "pairs", "--out", "results/detector/small"), ("results/detector/small",)),
     # Both read detector_small's stages.csv.
-    Step("small_bound", ("experiments.small_maps", "--landmarks", "10", "20", "--snrs", "20", "30", "--checks", "bound",
-                         "--bound-pairs", "2000", "--n-jobs", "2", "--out", "results/detector/small"),
-         ("results/detector/small",)),
-    Step("small_holdout", ("experiments.small_maps", "--landmarks", "10", "20", "--snrs", "20", "30", "--checks",
-                           "holdout", "--pairs", "10000", "--n-jobs", "2", "--out", "results/detector/small"),
-         ("results/detector/small",)),
-    Step("small_acceptance", ("experiments.small_maps", "--landmarks", "5", "10", "15", "20", "30", "50", "100",
-                              "--layouts", "strip", "interleaved", "--snrs", "10", "15", "20", "25", "30", "35",
-                              "40", "--checks", "acceptance", "--tuning-pairs", "10000", "--related", "500",
-                              "--pairs", "10000", "--n-jobs", "2", "--out", "results/detector/small"),
-         ("results/detector/small",)),
+    _small_maps("small_bound", "--landmarks", "10", "20", "--snrs", "20", "30", "--checks", "bound", "--bound-pairs",
+                "2000"),
+    _small_maps("small_holdout", "--landmarks", "10", "20", "--snrs", "20", "30", "--checks", "holdout", "--pairs",
+                "10000"),
+    _small_maps("small_acceptance", "--landmarks", "5", "10", "15", "20", "30", "50", "100", "--layouts", "strip",
+                "interleaved", "--snrs", "10", "15", "20", "25", "30", "35", "40", "--checks", "acceptance",
+                "--tuning-pairs", "10000", "--related", "500", "--pairs", "10000"),
     # What-if levels of the triangle test on held-out pairs and on the peers' related pairs (docs/small_maps.md).
-    Step("small_levels", ("experiments.small_maps", "--landmarks", "10", "20", "--layouts", "strip", "interleaved",
-                          "--snrs", "10", "15", "20", "25", "30", "35", "40", "--checks", "levels", "--levels", "1e-4",
-                          "1e-3", "1e-2", "--related", "1000", "--pairs", "10000", "--n-jobs", "2", "--out",
-                          "results/detector/small"), ("results/detector/small",)),
+    _small_maps("small_levels", *SMALL_CELLS, "--checks", "levels", "--levels", "1e-4", "1e-3", "1e-2", "--related",
+                "1000", "--pairs", "10000"),
     _compare("compare"),
     _compare("compare_consensus"),
     _compare("compare_search"),
@@ -147,19 +152,13 @@ STEPS: tuple[Step, ...] = (
     Step("peers_scaling", ("experiments.peers", "--scaling"), ("results/peers",), PEERS),
     # Each peer's bound set per cell (1,000 tuning pairs) so that every method is at one false-merge rate.
     Step("peers_equal_rate", ("experiments.peers", "--equal-rate"), ("results/peers",), PEERS),
-    # The triangle test with its threshold set per cell as the peers' are, two statistics (docs/small_maps.md).
-    Step("small_statistics", ("experiments.small_maps", "--landmarks", "10", "20", "--layouts", "strip",
-                              "interleaved", "--snrs", "10", "15", "20", "25", "30", "35", "40", "--checks",
-                              "statistics", "--tuning-pairs", "10000", "--related", "1000", "--pairs", "10000",
-                              "--n-jobs", "2", "--out", "results/detector/small"), ("results/detector/small",)),
+    # The triangle test with its threshold set per cell as the peers' are, three rankings (docs/small_maps.md).
+    _small_maps("small_statistics", *SMALL_CELLS, "--checks", "statistics", "--tuning-pairs", "10000", "--related",
+                "1000", "--pairs", "10000"),
     # consensus with the count NFA as its triangle test, the search included (what-if; docs/small_maps.md).
-    Step("small_count", ("experiments.small_maps", "--landmarks", "10", "20", "--layouts", "strip", "interleaved",
-                         "--snrs", "10", "15", "20", "25", "30", "35", "40", "--checks", "count", "--related", "1000",
-                         "--pairs", "10000", "--n-jobs", "2", "--out", "results/detector/small"),
-         ("results/detector/small",)),
+    _small_maps("small_count", *SMALL_CELLS, "--checks", "count", "--related", "1000", "--pairs", "10000"),
     # consensus beside the best peer at one false-merge rate and the detector, per small-map cell.
-    Step("small_reference", ("experiments.small_maps", "--checks", "reference", "--out", "results/detector/small"),
-         ("results/detector/small",)),
+    Step("small_reference", ("experiments.small_maps", "--checks", "reference", "--out", SMALL), (SMALL,)),
     Step("docs", ("experiments.docs",), ()),
 )
 
