@@ -237,7 +237,7 @@ def association_table(table: pd.DataFrame, pairs: pd.DataFrame | None = None) ->
     return t[[c for c in names if c in t]].rename(columns=names)
 
 
-#: Methods of ``found.md``: the ones meant to work where triangles stop discriminating.
+#: Methods of ``found.md``: the ones meant to work where triangles stop discriminating, and the outside peers.
 LOW_SNR_METHODS = ("consensus", "search", *PEERS)
 
 

@@ -200,14 +200,26 @@ def best_peer(cell: pd.DataFrame) -> pd.Series:
     return peers.loc[peers.found_rate.idxmax()]
 
 
-def peer_cell(equal_rate: pd.DataFrame, layout: str, n: int, snr: float) -> pd.DataFrame:
-    """The rows of one cell of ``experiments.peers --equal-rate``'s table."""
-    return equal_rate[(equal_rate.layout == layout) & (equal_rate.n_landmarks == n) & (equal_rate.snr_db == snr)]
+def cell_rows(table: pd.DataFrame, layout: str, n: int, snr: float) -> pd.DataFrame:
+    """The rows of one (layout, landmarks, SNR) cell of a table."""
+    return table[(table.layout == layout) & (table.n_landmarks == n) & (table.snr_db == snr)]
 
 
 def verdict(lo: float, hi: float, peer: pd.Series) -> str:
     """"ahead", "behind" or "level" (the intervals overlap) of a found rate's interval [lo, hi] against a peer's."""
     return "ahead" if lo > peer.found_hi else "behind" if hi < peer.found_lo else "level"
+
+
+def peer_columns(equal_rate: pd.DataFrame, layout: str, n: int, snr: float, intervals: dict) -> dict:
+    """The best peer of a cell of ``experiments.peers --equal-rate``'s table and the verdict of each found-rate
+    interval of ``intervals`` ({column: (lo, hi)}) against it; "n/a" where the table has no such cell."""
+    cell = cell_rows(equal_rate, layout, n, snr)
+    if not len(cell):
+        return {"best_peer": "n/a", "peer_found": np.nan, "peer_lo": np.nan, "peer_hi": np.nan,
+                **{column: "n/a" for column in intervals}}
+    best = best_peer(cell)
+    return {"best_peer": best.method, "peer_found": best.found_rate, "peer_lo": best.found_lo,
+            "peer_hi": best.found_hi, **{column: verdict(lo, hi, best) for column, (lo, hi) in intervals.items()}}
 
 
 def reference_table(equal_rate: pd.DataFrame, limit: pd.DataFrame) -> pd.DataFrame:
@@ -216,7 +228,7 @@ def reference_table(equal_rate: pd.DataFrame, limit: pd.DataFrame) -> pd.DataFra
     small = equal_rate[equal_rate.n_landmarks <= 20]
     for (layout, n, snr), cell in small.groupby(["layout", "n_landmarks", "snr_db"]):
         ours, best = cell[cell.method == "consensus"].iloc[0], best_peer(cell)
-        found = limit[(limit.layout == layout) & (limit.n_landmarks == n) & (limit.snr_db == snr)]
+        found = cell_rows(limit, layout, n, snr)
         # The detector's pairs are its own (seeds 100000+), with consensus's find on them; NaN without a row.
         detector = found.iloc[0] if len(found) else pd.Series({"found_rate": np.nan, "consensus_found_rate": np.nan})
         rows.append({"layout": layout, "n_landmarks": n, "snr_db": snr, "pairs": int(ours.pairs),
@@ -302,12 +314,9 @@ def count_table(n: int, layout: str, snr: float, related: int, holdout: int, equ
     with count_acceptance():
         row = {"n_landmarks": n, "layout": layout, "snr_db": snr, "log_level": np.log(mm.consensus.match_level(n)),
                **merged_counts(n, layout, snr, related, holdout)}
-    cell = peer_cell(equal_rate, layout, n, snr)
-    if len(cell):
-        ours, best = cell[cell.method == "consensus"].iloc[0], best_peer(cell)
-        row.update(shipped_found=ours.found_rate, best_peer=best.method, peer_found=best.found_rate,
-                   peer_lo=best.found_lo, peer_hi=best.found_hi, vs_peer=verdict(row["found_lo"], row["found_hi"],
-                                                                                 best))
+    shipped = cell_rows(equal_rate, layout, n, snr).query("method == 'consensus'").found_rate
+    row["shipped_found"] = shipped.iloc[0] if len(shipped) else np.nan
+    row.update(peer_columns(equal_rate, layout, n, snr, {"vs_peer": (row["found_lo"], row["found_hi"])}))
     return row
 
 
@@ -415,12 +424,8 @@ def statistics_table(n: int, layout: str, snr: float, frames, rate: float, level
     null_pass, rel_pass, hold_pass = (r.tri_log_count_nfa.to_numpy() < level for r in (null, rel, hold))
     row.update({"size_level_log": level, "size_level_tuning_pass": int(null_pass.sum()),
                 **_rates("size_level", rel, hold, rel_pass, int(hold_pass.sum()))})
-    cell = peer_cell(equal_rate, layout, n, snr)
-    best = best_peer(cell) if len(cell) else pd.Series({"method": "n/a", "found_rate": np.nan, "found_lo": np.nan,
-                                                         "found_hi": np.nan})
-    row.update(best_peer=best.method, peer_found=best.found_rate, peer_lo=best.found_lo, peer_hi=best.found_hi)
-    for name in ("count_first", "size_level"):
-        row[f"{name}_vs_peer"] = verdict(row[f"{name}_lo"], row[f"{name}_hi"], best) if len(cell) else "n/a"
+    row.update(peer_columns(equal_rate, layout, n, snr, {f"{name}_vs_peer": (row[f"{name}_lo"], row[f"{name}_hi"])
+                                                          for name in ("count_first", "size_level")}))
     return row
 
 
