@@ -103,6 +103,8 @@ PEERS = ("pycpd", "clipperpy", "teaserpp_python")
 SMALL = "results/detector/small"
 SMALL_CELLS = ("--landmarks", "10", "20", "--layouts", "strip", "interleaved", "--snrs", "10", "15", "20", "25", "30",
                "35", "40")
+#: The same at every size of ``consensus.COUNT_LEVELS``.
+COUNT_CELLS = ("--landmarks", "5", "10", "15", "20", "30", "50", *SMALL_CELLS[3:])
 
 
 def _small_maps(name: str, *args: str) -> Step:
@@ -155,8 +157,11 @@ STEPS: tuple[Step, ...] = (
     # The triangle test with its threshold set per cell as the peers' are, three rankings (docs/small_maps.md).
     _small_maps("small_statistics", *SMALL_CELLS, "--checks", "statistics", "--tuning-pairs", "10000", "--related",
                 "1000", "--pairs", "10000"),
-    # consensus with the count NFA as its triangle test, the search included (what-if; docs/small_maps.md).
-    _small_maps("small_count", *SMALL_CELLS, "--checks", "count", "--related", "1000", "--pairs", "10000"),
+    # consensus_count's levels per map size (consensus.COUNT_LEVELS), the search included, on tuning pairs.
+    _small_maps("small_count_levels", *COUNT_CELLS, "--checks", "count_levels", "--tuning-pairs", "10000",
+                "--related", "1000", "--pairs", "10000"),
+    # consensus_count on held-out unrelated pairs and the peers' related pairs, every size it covers.
+    _small_maps("small_count", *COUNT_CELLS, "--checks", "count", "--related", "1000", "--pairs", "10000"),
     # consensus beside the best peer at one false-merge rate and the detector, per small-map cell.
     Step("small_reference", ("experiments.small_maps", "--checks", "reference", "--out", SMALL), (SMALL,)),
     Step("docs", ("experiments.docs",), ()),

@@ -58,13 +58,18 @@ Checks beside ``experiments.detector``'s tables (``stages``), chosen with
    count NFA also gets one level per map size (``size_level``), as
    consensus would ship it. Found rates, wrong merges, held-out false
    passes, the triangle stage's ceiling and the best peer of ``--peers``;
-7. ``count``: consensus as shipped, the search included, but with its
-   triangle test ranked by ``consensus.count_nfa_batch`` at the levels per
-   map size ``COUNT_LEVELS`` (what-if runs, ``count_acceptance``): false
-   merges on ``--pairs`` held-out unrelated pairs (seeds 600000+k), found
-   rate and wrong merges on ``--related`` related pairs (seeds 0+k), beside
-   the best peer of ``--peers``;
-8. ``reference``: no merging. Per small-map cell (up to 20 landmarks) of
+7. ``count_levels``: the levels of ``consensus.COUNT_LEVELS``. On the
+   statistics check's unrelated tuning pairs (seeds 300000+k) the global
+   search alone (``search_rows``, kept like the statistics rows) and the
+   count NFA of the triangle test: per map size the loosest level at which
+   at most ``SIZE_ALLOWED`` tuning pairs merge in every cell, the search's
+   merges counted first (``count_level_table``);
+8. ``count``: the ``consensus_count`` method (the count NFA at
+   ``consensus.COUNT_LEVELS``, the search included): false merges on
+   ``--pairs`` held-out unrelated pairs (seeds 600000+k), found rate and
+   wrong merges on ``--related`` related pairs (seeds 0+k), beside
+   consensus and the best peer of ``--peers``;
+9. ``reference``: no merging. Per small-map cell (up to 20 landmarks) of
    ``results/peers/equal_rate.csv`` (``--peers``), consensus beside the
    best outside peer at one false-merge rate and the exhaustive detector
    at 1e-3 (``limit.csv`` in ``--out``, strip layout, on its own pairs,
@@ -265,8 +270,8 @@ def acceptance_rows(n: int, layout: str, snr: float, seeds, unrelated: bool, sea
     return rows
 
 
-def merged_counts(n: int, layout: str, snr: float, related: int, holdout: int) -> dict:
-    """consensus under whatever acceptance is in force: false merges on ``holdout`` held-out unrelated pairs
+def merged_counts(n: int, layout: str, snr: float, related: int, holdout: int, method: str = "consensus") -> dict:
+    """``method`` under whatever acceptance is in force: false merges on ``holdout`` held-out unrelated pairs
     (seeds 600000+k), found rate (with its interval) and wrong merges on ``related`` related pairs of seeds
     0+k, the pairs ``experiments.peers --equal-rate`` gives every peer."""
     counts = {"false_merges": 0, "found": 0, "wrong_merges": 0}
@@ -274,7 +279,7 @@ def merged_counts(n: int, layout: str, snr: float, related: int, holdout: int) -
         for start in range(0, count, BATCH):
             seeds = [base + k for k in range(start, min(start + BATCH, count))]
             sc = mm.simulate.make_pairs(n, 0.75, snr, seeds, unrelated=unrelated, layout=layout)
-            err = mm.metrics.map_errors_batch(sc, mm.merge_batch(sc.p, sc.q, sc.sigma))
+            err = mm.metrics.map_errors_batch(sc, mm.merge_batch(sc.p, sc.q, sc.sigma, method=method))
             if unrelated:
                 counts["false_merges"] += int(err["matched"].sum())
             else:
@@ -294,43 +299,33 @@ def level_table(n: int, layout: str, snr: float, level: float, related: int, hol
                 **merged_counts(n, layout, snr, related, holdout)}
 
 
-#: Log levels of ``consensus.count_nfa_batch`` per map size for the ``count`` check (a what-if, not the
-#: library's): the statistics check's ``size_level_log`` at 5, 10, 15, 20, 30, 50 and 100 landmarks (tuning
-#: seeds 300000+, docs/small_maps.md); beyond 100 landmarks the 100-landmark level.
-COUNT_LEVELS = {5: -4.4255, 10: -13.3282, 15: -20.7435, 20: -25.6355, 30: -40.9747, 50: -54.8068,
-                np.inf: -86.6396}
-
-
-def count_acceptance():
-    """consensus's triangle test ranked by ``consensus.count_nfa_batch`` at ``COUNT_LEVELS`` for the duration:
-    what-if runs of the count NFA as the default test, not a setting of the library."""
-    return mock.patch.multiple(mm.consensus, match_nfa_batch=mm.consensus.count_nfa_batch,
-                               MATCH_NFA={most: float(np.exp(v)) for most, v in COUNT_LEVELS.items()})
-
-
 def count_table(n: int, layout: str, snr: float, related: int, holdout: int, equal_rate: pd.DataFrame) -> dict:
-    """consensus as shipped but for its triangle test, the count NFA at ``COUNT_LEVELS`` (the search
-    included): ``merged_counts`` beside the best peer at one false-merge rate."""
-    with count_acceptance():
-        row = {"n_landmarks": n, "layout": layout, "snr_db": snr, "log_level": np.log(mm.consensus.match_level(n)),
-               **merged_counts(n, layout, snr, related, holdout)}
+    """``consensus_count`` (the count NFA at ``consensus.COUNT_LEVELS``, the search included): ``merged_counts``
+    beside consensus's and the best peer's found rates at one false-merge rate."""
+    row = {"n_landmarks": n, "layout": layout, "snr_db": snr,
+           "log_level": np.log(mm.consensus.triangle_test(n, "count")[1]),
+           **merged_counts(n, layout, snr, related, holdout, "consensus_count")}
     shipped = cell_rows(equal_rate, layout, n, snr).query("method == 'consensus'").found_rate
     row["shipped_found"] = shipped.iloc[0] if len(shipped) else np.nan
     row.update(peer_columns(equal_rate, layout, n, snr, {"vs_peer": (row["found_lo"], row["found_hi"])}))
     return row
 
 
-def kept_rows(check: str, n: int, layout: str, snr: float, sets) -> list[pd.DataFrame]:
-    """``acceptance_rows`` of each set (kind, first seed, count, unrelated, search) of a cell, one frame per
-    set; kept in ``ROWS/<check>_<n>_<layout>_<snr>_<code digest>.csv`` and read back while the code and the
-    counts are the same."""
+#: The columns of ``acceptance_rows``.
+ACCEPTANCE_COLUMNS = ("seed", "tri_log_nfa", "tri_found", "merged", "tri_pairs", "tri_log_count_nfa")
+
+
+def kept_rows(check: str, n: int, layout: str, snr: float, sets, make=acceptance_rows,
+              columns=ACCEPTANCE_COLUMNS) -> list[pd.DataFrame]:
+    """``make(n, layout, snr, seeds, *args)`` rows (``columns``) of each set (kind, first seed, count, *args) of
+    a cell, one frame per set; kept in ``ROWS/<check>_<n>_<layout>_<snr>_<code digest>.csv`` and read back while
+    the code and the counts are the same."""
     path = ROWS / f"{check}_{n}_{layout}_{snr:g}_{code_digest(detector.__file__)[:12]}.csv"
     rows = pd.read_csv(path) if path.is_file() else None
-    if rows is None or [int(np.sum(rows.kind == kind)) for kind, *_ in sets] != [c for _, _, c, _, _ in sets]:
-        rows = pd.DataFrame([(kind, *row) for kind, base, count, unrelated, search in sets
-                             for row in acceptance_rows(n, layout, snr, base + np.arange(count), unrelated, search)],
-                            columns=["kind", "seed", "tri_log_nfa", "tri_found", "merged", "tri_pairs",
-                                     "tri_log_count_nfa"])
+    if rows is None or [int(np.sum(rows.kind == kind)) for kind, *_ in sets] != [c for _, _, c, *_ in sets]:
+        rows = pd.DataFrame([(kind, *row) for kind, base, count, *args in sets
+                             for row in make(n, layout, snr, base + np.arange(count), *args)],
+                            columns=["kind", *columns])
         path.parent.mkdir(parents=True, exist_ok=True)
         rows.to_csv(path, index=False, float_format="%.10g")
     return [rows[rows.kind == kind] for kind, *_ in sets]
@@ -383,6 +378,50 @@ def size_level(frames) -> float:
     through in every cell (``frames``: each cell's ``statistics_frames``)."""
     return min(np.sort(null.tri_log_count_nfa.to_numpy())[SIZE_ALLOWED] if len(null) > SIZE_ALLOWED else np.inf
                for null, _, _ in frames)
+
+
+def search_rows(n: int, layout: str, snr: float, seeds) -> list[tuple]:
+    """(seed, merged) of the global search alone (``method="search"``) on the unrelated pairs ``seeds``: the
+    merges consensus's fallback adds to its triangle test's, whatever that test's level."""
+    merged = []
+    for start in range(0, len(seeds), BATCH):
+        chunk = [int(s) for s in seeds[start:start + BATCH]]
+        sc = mm.simulate.make_pairs(n, 0.75, snr, chunk, unrelated=True, layout=layout)
+        merged += mm.merge_batch(sc.p, sc.q, sc.sigma, method="search").matched.tolist()
+    return list(zip(map(int, seeds), merged))
+
+
+def count_level_frames(n: int, layout: str, snr: float, tuning: int, related: int, holdout: int):
+    """A cell's unrelated tuning pairs (seeds 300000+k): the triangle test alone (``statistics_frames``) and the
+    global search alone (``search_rows``) on the same pairs."""
+    null = statistics_frames(n, layout, snr, tuning, related, holdout)[0]
+    search, = kept_rows("search", n, layout, snr, (("tuning", TUNING_SEED, tuning),), search_rows,
+                        ("seed", "merged"))
+    return null, search
+
+
+def count_level_table(cells: dict) -> pd.DataFrame:
+    """The count NFA's level for each map size, the search included: in each cell (``cells``: {(n, layout,
+    SNR): ``count_level_frames``}) the tuning pairs the search merges are spent first, and the level is the
+    loosest, rounded down to 0.01 in log, at which at most ``SIZE_ALLOWED`` tuning pairs merge in every cell
+    of the size (``consensus.COUNT_LEVELS`` holds them). ``cell_limit``: the log count NFA of the first
+    tuning pair the cell must stop (-inf when the search alone merges too many)."""
+    rows = []
+    for (n, layout, snr), (null, search) in cells.items():
+        by_search = search.merged.to_numpy(dtype=bool)
+        spare = SIZE_ALLOWED - int(by_search.sum())
+        ranked = np.sort(null.tri_log_count_nfa.to_numpy()[~by_search])
+        limit = -np.inf if spare < 0 else ranked[spare] if spare < len(ranked) else np.inf
+        rows.append({"n_landmarks": n, "layout": layout, "snr_db": snr, "tuning_pairs": len(null),
+                     "search_merges": int(by_search.sum()), "cell_limit": limit})
+    table = pd.DataFrame(rows)
+    limit = table.groupby("n_landmarks").cell_limit.transform("min")
+    level = np.floor(limit * 100) / 100
+    table["log_level"] = np.where(level < limit, level, level - 0.01)
+    table["tuning_merges"] = [
+        int(np.sum((null.tri_log_count_nfa.to_numpy() <= lvl) | search.merged.to_numpy(dtype=bool)))
+        for (null, search), lvl in zip(cells.values(), table.log_level)]
+    return table
 
 
 def _passes(r: pd.DataFrame, key, limit) -> np.ndarray:
@@ -439,8 +478,8 @@ def main(argv=None) -> None:
     parser.add_argument("--peers", default="results/peers/equal_rate.csv",
                         help="experiments.peers --equal-rate's table, for the reference check")
     parser.add_argument("--checks", nargs="+",
-                        choices=("bound", "holdout", "calibrated", "acceptance", "levels", "statistics", "count",
-                                 "reference"),
+                        choices=("bound", "holdout", "calibrated", "acceptance", "levels", "statistics",
+                                 "count_levels", "count", "reference"),
                         default=["bound", "holdout"])
     parser.add_argument("--layouts", nargs="+", choices=("strip", "interleaved"), default=["strip"],
                         help="layouts of the acceptance, levels, statistics and count checks")
@@ -513,6 +552,12 @@ def main(argv=None) -> None:
         table = pd.DataFrame([statistics_table(*cell, frames[cell], args.rate, levels[cell[0]], equal_rate)
                               for cell in layout_cells])
         for path in save_table(table, out / "statistics"):
+            print(path)
+    if "count_levels" in args.checks:
+        out.mkdir(parents=True, exist_ok=True)
+        frames = Parallel(n_jobs=args.n_jobs)(delayed(count_level_frames)(*cell, args.tuning_pairs, args.related,
+                                                                            args.pairs) for cell in layout_cells)
+        for path in save_table(count_level_table(dict(zip(layout_cells, frames))), out / "count_levels"):
             print(path)
     if "count" in args.checks:
         table = pd.DataFrame(Parallel(n_jobs=args.n_jobs)(

@@ -22,7 +22,9 @@ between unrelated triangles do not. ``consensus_merge``:
    ``mapmerge.exhaustive`` (EM, which wrong pairs bias far less than a fit
    over hard pairs) and associates there once more, and accepts the match
    only if chance would rarely produce one as good (``match_nfa``, an a
-   contrario test);
+   contrario test; the ``consensus_count`` variant ranks small maps' matches
+   by their association count, ``count_nfa_batch``, at levels set per map
+   size on unrelated tuning pairs);
 4. declares every triangle pair whose three landmarks are associated and
    not contested (``association.declared_triangles_batch``), and fuses every
    association, so common landmarks appear once in the combined map.
@@ -81,12 +83,20 @@ GROW_FACTOR = 3.0
 #: unrelated tuning pairs per size, layout and SNR, stays below 1e-3
 #: (docs/tuning.md). The search accepts at ``search.SEARCH_NFA``.
 MATCH_NFA = {10: 1e-2, 20: 1e-3, np.inf: 1e-4}
-#: ``count_nfa_batch``'s d² at which a landmark's chance partner is counted (not the default test). Chosen
-#: among 0.25, 0.5, 1 and 2 by the triangle test's finds at one level per map size (at most 3 of 10,000
-#: unrelated tuning pairs, seeds 300000+, through in any cell) on the detector's related pairs (seeds
-#: 100000+), 10 landmarks in both layouts and 20 on the strip, 10-40 dB: 0.25 and 0.5 tie, 1 and 2 lose
-#: up to 7 points at 15 dB (docs/small_maps.md).
+#: ``count_nfa_batch``'s d² at which a landmark's chance partner is counted. Chosen among 0.25, 0.5, 1
+#: and 2 by the triangle test's finds at one level per map size (at most 3 of 10,000 unrelated tuning
+#: pairs, seeds 300000+, through in any cell) on the related pairs of seeds 100000+, 10 landmarks in both
+#: layouts and 20 on the strip, 10-40 dB: 0.25 and 0.5 tie, 1 and 2 lose up to 7 points at 15 dB
+#: (docs/small_maps.md).
 COUNT_GATE = 0.5
+#: The ``consensus_count`` variant's triangle test on maps whose smaller map holds at most
+#: ``max(COUNT_LEVELS)`` landmarks: ``count_nfa_batch`` accepted at a log level per map size,
+#: ``{most landmarks: log level}``, the entry of the fewest landmarks that still covers the map. Each is
+#: the loosest level (rounded down to 0.01) at which at most 3 of 10,000 unrelated tuning pairs (seeds
+#: 300000+) merge, the global search's merges counted first, in every cell of its size (both layouts,
+#: 10-40 dB in 5 dB steps; ``experiments.small_maps --checks count_levels``). Larger maps keep
+#: ``MATCH_NFA``, where the NFA is tight.
+COUNT_LEVELS = {5: -4.43, 10: -13.33, 15: -20.75, 20: -25.64, 30: -41.08, 50: -54.81}
 #: The χ² quantile of the triangle gate: 3 vertices (6 coordinates).
 GATE_6 = float(chdtri(6, GATE_P))
 #: Hypotheses (most inliers first) refitted on their inliers and recounted.
@@ -403,6 +413,21 @@ def match_level(n_landmarks: int) -> float:
     return MATCH_NFA[min(most for most in MATCH_NFA if most >= n_landmarks)]
 
 
+#: The triangle test's statistics: ``"nfa"`` (``match_nfa_batch``, method ``consensus``) and ``"count"``
+#: (``count_nfa_batch`` on small maps, method ``consensus_count``).
+STATISTICS = ("nfa", "count")
+
+
+def triangle_test(n_landmarks: int, statistic: str = "nfa"):
+    """The triangle test between maps whose smaller holds ``n_landmarks`` landmarks: (its batch statistic, the
+    level at most which it accepts). ``"nfa"``: ``match_nfa_batch`` at ``match_level``; ``"count"``:
+    ``count_nfa_batch`` at ``COUNT_LEVELS`` on maps of up to ``max(COUNT_LEVELS)`` landmarks, the ``"nfa"``
+    test on larger ones."""
+    if statistic == "count" and n_landmarks <= max(COUNT_LEVELS):
+        return count_nfa_batch, float(np.exp(COUNT_LEVELS[min(m for m in COUNT_LEVELS if m >= n_landmarks)]))
+    return match_nfa_batch, match_level(n_landmarks)
+
+
 def match_nfa(P, Q, alignment, pairs, n_hypotheses: int, sigma: float, *, cov_p=None, cov_q=None,
               hull=None) -> float:
     """Number of false alarms of a match, a contrario (Moisan & Stival 2004).
@@ -487,7 +512,7 @@ def match_nfa_batch(P, Q, theta, t, cov, trial, pairs, n_hypotheses, sigma, cov_
 
 def count_nfa_batch(P, Q, theta, t, cov, trial, pairs, n_hypotheses, sigma, cov_p=None, cov_q=None,
                     hulls=None) -> np.ndarray:
-    """The number of false alarms of B matches counted by their associations alone (not the default test).
+    """The number of false alarms of B matches counted by their associations alone (``consensus_count``'s test).
 
     Each association is made by the association's own posterior gate, which
     tightens as the maps crowd, so the count of associations carries the
@@ -503,7 +528,8 @@ def count_nfa_batch(P, Q, theta, t, cov, trial, pairs, n_hypotheses, sigma, cov_
     It is not a bound: ``COUNT_GATE`` is far smaller than the association's
     own gate, so chance is understated by orders of magnitude (on unrelated
     tuning pairs 3 in 10,000 reach about e^-13 at 10 landmarks and e^-26 at
-    20). Only its order is used, against a level calibrated per map size.
+    20). Only its order is used, against a level calibrated per map size
+    (``COUNT_LEVELS``).
     """
     unit_area, n_inside, _ = _chance_terms(P, Q, theta, t, cov, trial, pairs, sigma, cov_p, cov_q, hulls)
     k = np.bincount(trial, minlength=len(P))
@@ -581,12 +607,12 @@ def _associate_fitted(P, Q, sigma, trial, pairs, cov_p, cov_q, hulls, *, mixture
     return active[tr], pairs, contested
 
 
-def _verified_pairs(P, Q, sigma, trial, pairs, n_hypotheses, cov_p, cov_q, hulls_p, hulls_q):
+def _verified_pairs(P, Q, sigma, trial, pairs, n_hypotheses, cov_p, cov_q, hulls_p, hulls_q, statistic):
     """Each map pair's associations from its triangle correspondences, kept only where significant.
 
     Associate under the correspondences' fit (``ASSOCIATION_ROUNDS`` times),
     then at the mixture's maximum-likelihood transform, and accept a map
-    pair's associations only if its ``match_nfa`` is at most ``match_level`` of its maps.
+    pair's associations only if they pass the ``triangle_test`` of its maps' size and ``statistic``.
     Returns (trial, pairs, contested) of the accepted associations.
     """
     hulls = {b: (hulls_p[b], hulls_q[b]) for b in np.flatnonzero(np.bincount(trial, minlength=len(P)) >= 3)}
@@ -600,15 +626,16 @@ def _verified_pairs(P, Q, sigma, trial, pairs, n_hypotheses, cov_p, cov_q, hulls
     contested = contested[np.bincount(trial, minlength=len(P))[trial] >= 3]
     if active.size == 0:
         return trial[:0], kept, contested
-    nfa = match_nfa_batch(P[active], Q[active], theta, t, cov, local, kept, n_hypotheses[active], sigma[active],
-                          covariance_rows(cov_p, active), covariance_rows(cov_q, active), [hulls[b][0] for b in active])
-    accepted = (nfa <= match_level(min(P.shape[1], Q.shape[1])))[local]
+    test, level = triangle_test(min(P.shape[1], Q.shape[1]), statistic)
+    nfa = test(P[active], Q[active], theta, t, cov, local, kept, n_hypotheses[active], sigma[active],
+               covariance_rows(cov_p, active), covariance_rows(cov_q, active), [hulls[b][0] for b in active])
+    accepted = (nfa <= level)[local]
     return active[local][accepted], kept[accepted], contested[accepted]
 
 
 def consensus_merge(P, Q, sigma, match: TriangleMatch, log_tau, cov_p=None, cov_q=None,
-                    fallback=None) -> MergeBatch:
-    """The ``method="consensus"`` merge of a batch of map pairs.
+                    fallback=None, statistic: str = "nfa") -> MergeBatch:
+    """The ``method="consensus"`` (``statistic="count"``: ``"consensus_count"``) merge of a batch of map pairs.
 
     Parameters
     ----------
@@ -623,6 +650,8 @@ def consensus_merge(P, Q, sigma, match: TriangleMatch, log_tau, cov_p=None, cov_
         for the map pairs whose triangles give no significant match, all at
         once (``search.search_batch``: the global search; ``hulls``: their
         maps' ``MapHulls``).
+    statistic : {"nfa", "count"}
+        The triangle test's statistic (``triangle_test``).
 
     Returns
     -------
@@ -634,7 +663,8 @@ def consensus_merge(P, Q, sigma, match: TriangleMatch, log_tau, cov_p=None, cov_
     """
     trial, pairs, n_conflicts, n_candidates = _triangle_correspondences(P, Q, sigma, match, log_tau)
     hulls_p, hulls_q = match.tri_p.hulls, match.tri_q.hulls
-    trial, pairs, contested = _verified_pairs(P, Q, sigma, trial, pairs, n_candidates, cov_p, cov_q, hulls_p, hulls_q)
+    trial, pairs, contested = _verified_pairs(P, Q, sigma, trial, pairs, n_candidates, cov_p, cov_q, hulls_p, hulls_q,
+                                              statistic)
     if fallback is not None:
         unmatched = np.flatnonzero(np.bincount(trial, minlength=len(P)) == 0)
         if unmatched.size:
@@ -656,7 +686,8 @@ def consensus_merge(P, Q, sigma, match: TriangleMatch, log_tau, cov_p=None, cov_
 
     rest = ~np.isin(key(match.trial, match.triangle_pairs), key(tri_trial, tri_pairs))
     order = np.argsort(np.concatenate([tri_trial, match.trial[rest]]), kind="stable")
-    return build_batch(method="consensus", P=P, Q=Q, sigma=sigma, log_tau=log_tau, tri_p=tri_p, tri_q=tri_q,
+    method = "consensus" if statistic == "nfa" else "consensus_count"
+    return build_batch(method=method, P=P, Q=Q, sigma=sigma, log_tau=log_tau, tri_p=tri_p, tri_q=tri_q,
                        tri_trial=np.concatenate([tri_trial, match.trial[rest]])[order],
                        triangle_pairs=np.concatenate([tri_pairs, match.triangle_pairs[rest]]).astype(np.intp)[order],
                        triangle_log_lr=np.concatenate([tri_scores, match.log_lr[rest]])[order],

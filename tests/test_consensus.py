@@ -169,6 +169,53 @@ def test_each_size_level_is_the_loosest_the_committed_tuning_pairs_allow():
             assert wilson(cells[f"tuning_pass_{10 * level:g}"], cells.tuning_pairs)[1].max() > 1e-3
 
 
+def test_triangle_test_counts_on_small_maps_only():
+    from mapmerge.consensus import COUNT_LEVELS, count_nfa_batch, match_level, match_nfa_batch, triangle_test
+
+    assert triangle_test(10, "count") == (count_nfa_batch, pytest.approx(np.exp(COUNT_LEVELS[10])))
+    assert triangle_test(12, "count")[1] == pytest.approx(np.exp(COUNT_LEVELS[15]))
+    largest = max(COUNT_LEVELS)
+    assert triangle_test(largest + 1, "count") == (match_nfa_batch, match_level(largest + 1))
+    assert triangle_test(10) == (match_nfa_batch, match_level(10))
+
+
+def test_consensus_count_finds_more_on_ten_landmark_maps_and_is_consensus_on_large_ones():
+    """A small version of the small-map target: on 10 landmarks at 20 dB consensus_count finds more related
+    pairs than consensus with no false merge among held-out unrelated ones; beyond ``COUNT_LEVELS`` it is
+    consensus, bit for bit."""
+    def merges(n, seeds, unrelated, method):
+        sc = mm.simulate.make_pairs(n, 0.75, 20.0, seeds, unrelated=unrelated)
+        return sc, mm.merge_batch(sc.p, sc.q, sc.sigma, method=method)
+
+    def found(seeds, unrelated, method):
+        sc, batch = merges(10, seeds, unrelated, method)
+        err = metrics.map_errors_batch(sc, batch)
+        return int(err["matched"].sum()) if unrelated else int((err["matched"] & err["transform_found"]).sum())
+
+    assert found(range(600_000, 600_300), True, "consensus_count") == 0
+    assert found(range(100), False, "consensus_count") >= found(range(100), False, "consensus") + 5
+    seeds = [0, 1, 600_000]
+    (_, ours), (_, count) = (merges(60, seeds, False, m) for m in ("consensus", "consensus_count"))
+    assert count.method == "consensus_count" and (count.matched == ours.matched).all()
+    np.testing.assert_array_equal(count.pairs, ours.pairs)
+
+
+def test_count_levels_are_the_committed_tunings():
+    """results/detector/small/count_levels.csv (10,000 unrelated tuning pairs per cell, the search included)
+    gives ``COUNT_LEVELS``: each size's level lets at most 3 tuning pairs of any cell merge."""
+    from pathlib import Path
+
+    import pandas as pd
+
+    from mapmerge.consensus import COUNT_LEVELS
+
+    table = pd.read_csv(Path(__file__).resolve().parents[1] / "results/detector/small/count_levels.csv")
+    assert set(table.n_landmarks) == set(COUNT_LEVELS) and (table.tuning_pairs == 10_000).all()
+    for n, cells in table.groupby("n_landmarks"):
+        assert cells.log_level.to_numpy() == pytest.approx(COUNT_LEVELS[n], abs=1e-9) and cells.tuning_merges.max() <= 3
+        assert len(cells) == 14  # both layouts, 10-40 dB
+
+
 def test_count_nfa_is_each_map_pair_tested_alone_and_falls_with_the_count():
     from mapmerge.consensus import count_nfa_batch
 

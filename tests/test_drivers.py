@@ -160,22 +160,44 @@ def test_small_maps_statistics_check_holds_each_statistic_to_the_tuning_rate(tmp
 
 
 
-def test_small_maps_count_check_swaps_the_triangle_test_and_restores_it():
+def test_small_maps_count_check_runs_consensus_count_beside_consensus_and_the_peer():
     from mapmerge import consensus
     from experiments import small_maps
 
-    default, nfa = consensus.MATCH_NFA, consensus.match_nfa_batch
-    with small_maps.count_acceptance():
-        assert consensus.match_nfa_batch is consensus.count_nfa_batch
-        assert np.log(consensus.match_level(10)) == pytest.approx(small_maps.COUNT_LEVELS[10])
-        assert np.log(consensus.match_level(12)) == pytest.approx(small_maps.COUNT_LEVELS[15])
-    assert consensus.MATCH_NFA is default and consensus.match_nfa_batch is nfa
     peers = pd.DataFrame([{"layout": "strip", "n_landmarks": 10, "snr_db": 20.0, "method": method, "pairs": 500,
                            "found_rate": found, "found_lo": found - 0.05, "found_hi": found + 0.05}
                           for method, found in (("consensus", 0.4), ("cpd", 0.5))])
     row = small_maps.count_table(10, "strip", 20.0, 12, 3, peers)
+    assert row["log_level"] == pytest.approx(consensus.COUNT_LEVELS[10])
     assert (row["related_pairs"], row["holdout_pairs"], row["best_peer"], row["shipped_found"]) == (12, 3, "cpd", 0.4)
     assert row["found_lo"] <= row["found_rate"] <= row["found_hi"] and 0 <= row["false_merges"] <= 3
-    # The levels check's counts are the same function's: at the shipped level, the shipped merges.
+    # The levels check's counts are the same function's, with consensus.
     shipped = small_maps.level_table(10, "strip", 20.0, consensus.match_level(10), 12, 3)
     assert shipped["match_nfa"] == consensus.match_level(10) and 0 <= shipped["wrong_merges"] <= 12
+
+
+def test_small_maps_count_levels_spend_the_search_merges_first(tmp_path, monkeypatch):
+    from experiments import small_maps
+
+    monkeypatch.setattr(small_maps, "ROWS", tmp_path)
+    monkeypatch.setattr(small_maps, "SIZE_ALLOWED", 2)
+    frames = small_maps.count_level_frames(10, "strip", 20.0, 30, 2, 2)
+    assert len(frames[0]) == len(frames[1]) == 30 and (frames[0].seed.to_numpy() == frames[1].seed.to_numpy()).all()
+    assert len(list(tmp_path.glob("search_10_strip_20_*.csv"))) == 1
+
+    def cell(counts, merged):
+        return pd.DataFrame({"tri_log_count_nfa": counts}), pd.DataFrame({"merged": merged})
+
+    table = small_maps.count_level_table({
+        (10, "strip", 20.0): cell([-9.0, -5.0, -4.0, -1.0, 0.0], [False, True, False, False, False]),
+        (10, "strip", 30.0): cell([-8.0, -7.5, -3.0, 2.0], [False] * 4),
+        (20, "strip", 20.0): cell([-1.0, 1.0, 2.0], [True, True, False]),
+        (20, "strip", 30.0): cell([-2.0, 3.0, 5.0], [True, True, True])})
+    # 10 landmarks: the 20 dB cell spends one of two on the search, so -4 is the first it must stop; the
+    # 30 dB cell stops -3; the size's level is just below the lower, and lets at most 2 through in each.
+    assert table.cell_limit.tolist()[:2] == [-4.0, -3.0] and (table.log_level[:2] == -4.01).all()
+    assert table.tuning_merges.tolist()[:2] == [2, 2]
+    # 20 landmarks: at 20 dB the search spends the allowance, so the triangle test must stop its first pair;
+    # at 30 dB the search alone merges too many, and no level is allowed.
+    assert table.cell_limit.tolist()[2:] == [2.0, -np.inf] and (table.log_level[2:] == -np.inf).all()
+    assert table.tuning_merges.tolist()[2:] == [2, 3]
