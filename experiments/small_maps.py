@@ -287,7 +287,8 @@ def merged_counts(n: int, layout: str, snr: float, related: int, holdout: int, m
                 counts["wrong_merges"] += int((err["matched"] & ~err["transform_found"]).sum())
     lo, hi = wilson(counts["found"], related)
     return {"holdout_pairs": holdout, "false_merges": counts["false_merges"],
-            "false_upper": float(wilson(counts["false_merges"], holdout)[1]), "related_pairs": related,
+            "false_upper": float(wilson(counts["false_merges"], holdout)[1]) if holdout else np.nan,
+            "related_pairs": related,
             "found_rate": counts["found"] / related, "found_lo": float(lo), "found_hi": float(hi),
             "wrong_merges": counts["wrong_merges"]}
 
@@ -300,13 +301,17 @@ def level_table(n: int, layout: str, snr: float, level: float, related: int, hol
 
 
 def count_table(n: int, layout: str, snr: float, related: int, holdout: int, equal_rate: pd.DataFrame) -> dict:
-    """``consensus_count`` (the count NFA at ``consensus.COUNT_LEVELS``, the search included): ``merged_counts``
-    beside consensus's and the best peer's found rates at one false-merge rate."""
+    """``consensus_count`` (the count NFA at ``consensus.COUNT_LEVELS``, the search included): ``merged_counts``,
+    and consensus's found rate and wrong merges on the same related pairs, beside the best peer's at one
+    false-merge rate; ``vs_consensus``, ``vs_peer``: ``verdict`` of consensus_count's found rate."""
     row = {"n_landmarks": n, "layout": layout, "snr_db": snr,
            "log_level": np.log(mm.consensus.triangle_test(n, "count")[1]),
            **merged_counts(n, layout, snr, related, holdout, "consensus_count")}
-    shipped = cell_rows(equal_rate, layout, n, snr).query("method == 'consensus'").found_rate
-    row["shipped_found"] = shipped.iloc[0] if len(shipped) else np.nan
+    ours = merged_counts(n, layout, snr, related, 0)
+    row.update(consensus_found=ours["found_rate"], consensus_lo=ours["found_lo"], consensus_hi=ours["found_hi"],
+               consensus_wrong=ours["wrong_merges"],
+               vs_consensus=verdict(row["found_lo"], row["found_hi"], pd.Series({"found_lo": ours["found_lo"],
+                                                                               "found_hi": ours["found_hi"]})))
     row.update(peer_columns(equal_rate, layout, n, snr, {"vs_peer": (row["found_lo"], row["found_hi"])}))
     return row
 

@@ -288,7 +288,7 @@ def _checks_of_the_match(map_p: LandmarkMap, map_q: LandmarkMap, res, sigma: flo
         warnings.append(f"the landmarks left unpaired hold a second rigid match ({len(second.pairs)} pairs, "
                         f"rotated {np.degrees(second.rotation_offset):.2f} deg against the first): one map is "
                         "bent, so the combined map aligns only the larger matched part and holds the other "
-                        "part's common landmarks twice" + ("" if res.method == "consensus" else
+                        "part's common landmarks twice" + ("" if res.method in ("consensus", "consensus_count") else
                                                            f", or the {res.method} match is wrong"))
     if res.method in UNTESTED_METHODS and not rigid.agree:
         wrong = rigid_info["wrong_merge"]

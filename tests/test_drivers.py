@@ -169,11 +169,13 @@ def test_small_maps_count_check_runs_consensus_count_beside_consensus_and_the_pe
                           for method, found in (("consensus", 0.4), ("cpd", 0.5))])
     row = small_maps.count_table(10, "strip", 20.0, 12, 3, peers)
     assert row["log_level"] == pytest.approx(consensus.COUNT_LEVELS[10])
-    assert (row["related_pairs"], row["holdout_pairs"], row["best_peer"], row["shipped_found"]) == (12, 3, "cpd", 0.4)
+    assert (row["related_pairs"], row["holdout_pairs"], row["best_peer"]) == (12, 3, "cpd")
+    assert row["consensus_lo"] <= row["consensus_found"] <= row["consensus_hi"] and 0 <= row["consensus_wrong"] <= 12
+    assert row["vs_consensus"] in ("ahead", "level", "behind")
     assert row["found_lo"] <= row["found_rate"] <= row["found_hi"] and 0 <= row["false_merges"] <= 3
-    # The levels check's counts are the same function's, with consensus.
+    # The levels check at consensus's own level counts the same pairs the same way.
     shipped = small_maps.level_table(10, "strip", 20.0, consensus.match_level(10), 12, 3)
-    assert shipped["match_nfa"] == consensus.match_level(10) and 0 <= shipped["wrong_merges"] <= 12
+    assert (shipped["found_rate"], shipped["wrong_merges"]) == (row["consensus_found"], row["consensus_wrong"])
 
 
 def test_small_maps_count_levels_spend_the_search_merges_first(tmp_path, monkeypatch):
