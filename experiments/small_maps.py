@@ -273,8 +273,9 @@ def acceptance_rows(n: int, layout: str, snr: float, seeds, unrelated: bool, sea
 def merged_counts(n: int, layout: str, snr: float, related: int, holdout: int, method: str = "consensus") -> dict:
     """``method`` under whatever acceptance is in force: false merges on ``holdout`` held-out unrelated pairs
     (seeds 600000+k), found rate (with its interval) and wrong merges on ``related`` related pairs of seeds
-    0+k, the pairs ``experiments.peers --equal-rate`` gives every peer."""
-    counts = {"false_merges": 0, "found": 0, "wrong_merges": 0}
+    0+k, the pairs ``experiments.peers --equal-rate`` gives every peer; ``wrong_over_5_deg``: the wrong
+    merges whose rotation is over 5° off (the others are near misses of the found rule)."""
+    counts = {"false_merges": 0, "found": 0, "wrong_merges": 0, "wrong_over_5_deg": 0}
     for unrelated, base, count in ((True, HOLDOUT_SEED, holdout), (False, 0, related)):
         for start in range(0, count, BATCH):
             seeds = [base + k for k in range(start, min(start + BATCH, count))]
@@ -284,13 +285,15 @@ def merged_counts(n: int, layout: str, snr: float, related: int, holdout: int, m
                 counts["false_merges"] += int(err["matched"].sum())
             else:
                 counts["found"] += int((err["matched"] & err["transform_found"]).sum())
-                counts["wrong_merges"] += int((err["matched"] & ~err["transform_found"]).sum())
+                wrong = err["matched"] & ~err["transform_found"]
+                counts["wrong_merges"] += int(wrong.sum())
+                counts["wrong_over_5_deg"] += int(np.sum(wrong & (np.abs(err["rot_err_deg"]) > 5)))
     lo, hi = wilson(counts["found"], related)
     return {"holdout_pairs": holdout, "false_merges": counts["false_merges"],
             "false_upper": float(wilson(counts["false_merges"], holdout)[1]) if holdout else np.nan,
             "related_pairs": related,
             "found_rate": counts["found"] / related, "found_lo": float(lo), "found_hi": float(hi),
-            "wrong_merges": counts["wrong_merges"]}
+            "wrong_merges": counts["wrong_merges"], "wrong_over_5_deg": counts["wrong_over_5_deg"]}
 
 
 def level_table(n: int, layout: str, snr: float, level: float, related: int, holdout: int) -> dict:
@@ -309,7 +312,7 @@ def count_table(n: int, layout: str, snr: float, related: int, holdout: int, equ
            **merged_counts(n, layout, snr, related, holdout, "consensus_count")}
     ours = merged_counts(n, layout, snr, related, 0)
     row.update(consensus_found=ours["found_rate"], consensus_lo=ours["found_lo"], consensus_hi=ours["found_hi"],
-               consensus_wrong=ours["wrong_merges"],
+               consensus_wrong=ours["wrong_merges"], consensus_wrong_over_5_deg=ours["wrong_over_5_deg"],
                vs_consensus=verdict(row["found_lo"], row["found_hi"], pd.Series({"found_lo": ours["found_lo"],
                                                                                "found_hi": ours["found_hi"]})))
     row.update(peer_columns(equal_rate, layout, n, snr, {"vs_peer": (row["found_lo"], row["found_hi"])}))

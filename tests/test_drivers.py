@@ -172,6 +172,7 @@ def test_small_maps_count_check_runs_consensus_count_beside_consensus_and_the_pe
     assert (row["related_pairs"], row["holdout_pairs"], row["best_peer"]) == (12, 3, "cpd")
     assert row["consensus_lo"] <= row["consensus_found"] <= row["consensus_hi"] and 0 <= row["consensus_wrong"] <= 12
     assert row["vs_consensus"] in ("ahead", "level", "behind")
+    assert 0 <= row["wrong_over_5_deg"] <= row["wrong_merges"] and 0 <= row["consensus_wrong_over_5_deg"] <= 12
     assert row["found_lo"] <= row["found_rate"] <= row["found_hi"] and 0 <= row["false_merges"] <= 3
     # The levels check at consensus's own level counts the same pairs the same way.
     shipped = small_maps.level_table(10, "strip", 20.0, consensus.match_level(10), 12, 3)
