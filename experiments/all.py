@@ -158,8 +158,7 @@ STEPS: tuple[Step, ...] = (
     _small_maps("small_statistics", *SMALL_CELLS, "--checks", "statistics", "--tuning-pairs", "10000", "--related",
                 "1000", "--pairs", "10000"),
     # consensus_count's levels per map size (consensus.COUNT_LEVELS), the search included, on tuning pairs.
-    _small_maps("small_count_levels", *COUNT_CELLS, "--checks", "count_levels", "--tuning-pairs", "10000",
-                "--related", "1000", "--pairs", "10000"),
+    _small_maps("small_count_levels", *COUNT_CELLS, "--checks", "count_levels", "--tuning-pairs", "10000"),
     # consensus_count on held-out unrelated pairs and the peers' related pairs, every size it covers.
     _small_maps("small_count", *COUNT_CELLS, "--checks", "count", "--related", "1000", "--pairs", "10000"),
     # consensus beside the best peer at one false-merge rate and the detector, per small-map cell.

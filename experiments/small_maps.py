@@ -399,10 +399,10 @@ def search_rows(n: int, layout: str, snr: float, seeds) -> list[tuple]:
     return list(zip(map(int, seeds), merged))
 
 
-def count_level_frames(n: int, layout: str, snr: float, tuning: int, related: int, holdout: int):
-    """A cell's unrelated tuning pairs (seeds 300000+k): the triangle test alone (``statistics_frames``) and the
-    global search alone (``search_rows``) on the same pairs."""
-    null = statistics_frames(n, layout, snr, tuning, related, holdout)[0]
+def count_level_frames(n: int, layout: str, snr: float, tuning: int):
+    """A cell's unrelated tuning pairs (seeds 300000+k): the triangle test alone (the statistics check's kept
+    rows, or only their tuning set) and the global search alone (``search_rows``) on the same pairs."""
+    null, = kept_rows("statistics", n, layout, snr, (("tuning", TUNING_SEED, tuning, True, False),))
     search, = kept_rows("search", n, layout, snr, (("tuning", TUNING_SEED, tuning),), search_rows,
                         ("seed", "merged"))
     return null, search
@@ -563,8 +563,8 @@ def main(argv=None) -> None:
             print(path)
     if "count_levels" in args.checks:
         out.mkdir(parents=True, exist_ok=True)
-        frames = Parallel(n_jobs=args.n_jobs)(delayed(count_level_frames)(*cell, args.tuning_pairs, args.related,
-                                                                            args.pairs) for cell in layout_cells)
+        frames = Parallel(n_jobs=args.n_jobs)(delayed(count_level_frames)(*cell, args.tuning_pairs)
+                                              for cell in layout_cells)
         for path in save_table(count_level_table(dict(zip(layout_cells, frames))), out / "count_levels"):
             print(path)
     if "count" in args.checks:
