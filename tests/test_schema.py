@@ -92,7 +92,7 @@ def test_validate_names_the_key(override, key):
 @pytest.mark.parametrize(
     "override, allowed",
     [
-        ("matcher.method=papr", "[paper, cyclic, consensus, search, groth, astroalign"),
+        ("matcher.method=papr", "[paper, cyclic, consensus, consensus_count, search, groth, astroalign"),
         ("matcher.objective=max", "[lr, loglr]"),
         ("mc.backend=spark", "[loky, dask]"),
         ("scenario.kind=lidar", "[synthetic, victoria_park]"),
