@@ -413,11 +413,6 @@ def match_level(n_landmarks: int) -> float:
     return MATCH_NFA[min(most for most in MATCH_NFA if most >= n_landmarks)]
 
 
-#: The triangle test's statistics: ``"nfa"`` (``match_nfa_batch``, method ``consensus``) and ``"count"``
-#: (``count_nfa_batch`` on small maps, method ``consensus_count``).
-STATISTICS = ("nfa", "count")
-
-
 def triangle_test(n_landmarks: int, statistic: str = "nfa"):
     """The triangle test between maps whose smaller holds ``n_landmarks`` landmarks: (its batch statistic, the
     level at most which it accepts). ``"nfa"``: ``match_nfa_batch`` at ``match_level``; ``"count"``:
