@@ -32,6 +32,7 @@ lasts 900.0 s, so 900 s is the whole logs but for the last few milliseconds). Wr
 from __future__ import annotations
 
 import argparse
+import itertools
 import time
 from pathlib import Path
 
@@ -90,23 +91,20 @@ def true_pair(team, i, j):
 
 def pair_rows(team) -> list[dict]:
     rows = []
-    for method in PAIR_METHODS:
-        for i in range(len(team.maps)):
-            for j in range(i + 1, len(team.maps)):
-                start = time.perf_counter()
-                res = merge_maps(team.maps[i], team.maps[j], method=method, cov_p=team.shape_covs[i],
-                                 cov_q=team.shape_covs[j], rng=SEED)
-                ms = 1e3 * (time.perf_counter() - start)
-                theta, t = true_pair(team, i, j)
-                right = (team.ids[i][res.pairs[:, 0]] == team.ids[j][res.pairs[:, 1]] if len(res.pairs)
-                         else np.zeros(0, bool))
-                rows.append({
-                    "until_s": label(team.until_s), "method": method, "robots": f"{team.robots[i]}-{team.robots[j]}",
-                    "common": len(np.intersect1d(team.ids[i], team.ids[j])), "matched": bool(res.matched),
-                    "correct_pairs": int(right.sum()), "wrong_pairs": int((~right).sum()),
-                    "rot_err_deg": float(np.degrees(abs(wrap_angle(res.theta - theta)))) if res.matched else np.nan,
-                    "trans_err": float(np.hypot(*(res.t - t))) if res.matched else np.nan, "ms": ms,
-                })
+    for method, (i, j) in itertools.product(PAIR_METHODS, itertools.combinations(range(len(team.maps)), 2)):
+        start = time.perf_counter()
+        res = merge_maps(team.maps[i], team.maps[j], method=method, cov_p=team.shape_covs[i],
+                         cov_q=team.shape_covs[j], rng=SEED)
+        ms = 1e3 * (time.perf_counter() - start)
+        theta, t = true_pair(team, i, j)
+        right = team.ids[i][res.pairs[:, 0]] == team.ids[j][res.pairs[:, 1]] if len(res.pairs) else np.zeros(0, bool)
+        rows.append({
+            "until_s": label(team.until_s), "method": method, "robots": f"{team.robots[i]}-{team.robots[j]}",
+            "common": len(np.intersect1d(team.ids[i], team.ids[j])), "matched": bool(res.matched),
+            "correct_pairs": int(right.sum()), "wrong_pairs": int((~right).sum()),
+            "rot_err_deg": float(np.degrees(abs(wrap_angle(res.theta - theta)))) if res.matched else np.nan,
+            "trans_err": float(np.hypot(*(res.t - t))) if res.matched else np.nan, "ms": ms,
+        })
     return rows
 
 

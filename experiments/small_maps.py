@@ -381,11 +381,19 @@ def statistics_frames(n: int, layout: str, snr: float, tuning: int, related: int
         ("holdout", HOLDOUT_SEED, holdout, True, False)))
 
 
+def cell_limit(log_count_nfa: np.ndarray, by_search: np.ndarray) -> float:
+    """The log count NFA of the first tuning pair a cell must stop so that at most ``SIZE_ALLOWED`` of its
+    tuning pairs merge, those the search merges (``by_search``) spent first: -inf when the search alone
+    merges too many, inf when none need stopping."""
+    spare = SIZE_ALLOWED - int(by_search.sum())
+    ranked = np.sort(log_count_nfa[~by_search])
+    return -np.inf if spare < 0 else ranked[spare] if spare < len(ranked) else np.inf
+
+
 def size_level(frames) -> float:
-    """The count NFA's level for one map size: the loosest that lets at most ``SIZE_ALLOWED`` tuning pairs
-    through in every cell (``frames``: each cell's ``statistics_frames``)."""
-    return min(np.sort(null.tri_log_count_nfa.to_numpy())[SIZE_ALLOWED] if len(null) > SIZE_ALLOWED else np.inf
-               for null, _, _ in frames)
+    """The count NFA's level for one map size, triangle test alone: the loosest that lets at most
+    ``SIZE_ALLOWED`` tuning pairs through in every cell (``frames``: each cell's ``statistics_frames``)."""
+    return min(cell_limit(null.tri_log_count_nfa.to_numpy(), np.zeros(len(null), dtype=bool)) for null, _, _ in frames)
 
 
 def search_rows(n: int, layout: str, snr: float, seeds) -> list[tuple]:
@@ -414,15 +422,11 @@ def count_level_table(cells: dict) -> pd.DataFrame:
     loosest, rounded down to 0.01 in log, at which at most ``SIZE_ALLOWED`` tuning pairs merge in every cell
     of the size (``consensus.COUNT_LEVELS`` holds them). ``cell_limit``: the log count NFA of the first
     tuning pair the cell must stop (-inf when the search alone merges too many)."""
-    rows = []
-    for (n, layout, snr), (null, search) in cells.items():
-        by_search = search.merged.to_numpy(dtype=bool)
-        spare = SIZE_ALLOWED - int(by_search.sum())
-        ranked = np.sort(null.tri_log_count_nfa.to_numpy()[~by_search])
-        limit = -np.inf if spare < 0 else ranked[spare] if spare < len(ranked) else np.inf
-        rows.append({"n_landmarks": n, "layout": layout, "snr_db": snr, "tuning_pairs": len(null),
-                     "search_merges": int(by_search.sum()), "cell_limit": limit})
-    table = pd.DataFrame(rows)
+    table = pd.DataFrame([{"n_landmarks": n, "layout": layout, "snr_db": snr, "tuning_pairs": len(null),
+                           "search_merges": int(search.merged.sum()),
+                           "cell_limit": cell_limit(null.tri_log_count_nfa.to_numpy(),
+                                                    search.merged.to_numpy(dtype=bool))}
+                          for (n, layout, snr), (null, search) in cells.items()])
     limit = table.groupby("n_landmarks").cell_limit.transform("min")
     level = np.floor(limit * 100) / 100
     table["log_level"] = np.where(level < limit, level, level - 0.01)

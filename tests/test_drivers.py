@@ -159,7 +159,6 @@ def test_small_maps_statistics_check_holds_each_statistic_to_the_tuning_rate(tmp
     assert again["nfa_found"] == row["nfa_found"] and again["count_first_vs_peer"] == "n/a"
 
 
-
 def test_small_maps_count_check_runs_consensus_count_beside_consensus_and_the_peer():
     from mapmerge import consensus
     from experiments import small_maps
