@@ -58,12 +58,15 @@ Checks beside ``experiments.detector``'s tables (``stages``), chosen with
    count NFA also gets one level per map size (``size_level``), as
    consensus would ship it. Found rates, wrong merges, held-out false
    passes, the triangle stage's ceiling and the best peer of ``--peers``;
-7. ``count_levels``: the levels of ``consensus.COUNT_LEVELS``. On the
-   statistics check's unrelated tuning pairs (seeds 300000+k) the global
-   search alone (``search_rows``, kept like the statistics rows) and the
-   count NFA of the triangle test: per map size the loosest level at which
-   at most ``SIZE_ALLOWED`` tuning pairs merge in every cell, the search's
-   merges counted first (``count_level_table``);
+7. ``count_levels``: the levels of ``consensus.SEARCH_COUNT_LEVELS`` and
+   ``consensus.COUNT_LEVELS``. On the statistics check's unrelated tuning
+   pairs (seeds 300000+k) the global search alone (``search_rows``, kept
+   like the statistics rows: its own test and the count NFA of its best
+   hypothesis) and the count NFA of the triangle test: per map size the
+   loosest search level at which at most ``consensus.SEARCH_ALLOWED``
+   tuning pairs merge in every cell, then the loosest triangle level at
+   which at most ``SIZE_ALLOWED`` merge, the search's merges counted first
+   (``count_level_table``);
 8. ``count``: the ``consensus_count`` method (the count NFA at
    ``consensus.COUNT_LEVELS``, the search included): false merges on
    ``--pairs`` held-out unrelated pairs (seeds 600000+k), found rate and
@@ -381,13 +384,20 @@ def statistics_frames(n: int, layout: str, snr: float, tuning: int, related: int
         ("holdout", HOLDOUT_SEED, holdout, True, False)))
 
 
-def cell_limit(log_count_nfa: np.ndarray, by_search: np.ndarray) -> float:
-    """The log count NFA of the first tuning pair a cell must stop so that at most ``SIZE_ALLOWED`` of its
-    tuning pairs merge, those the search merges (``by_search``) spent first: -inf when the search alone
-    merges too many, inf when none need stopping."""
-    spare = SIZE_ALLOWED - int(by_search.sum())
+def cell_limit(log_count_nfa: np.ndarray, by_search: np.ndarray, allowed: int | None = None) -> float:
+    """The log count NFA of the first tuning pair a cell must stop so that at most ``allowed`` (default
+    ``SIZE_ALLOWED``) of its tuning pairs merge, those merged already (``by_search``) spent first: -inf when those alone are too many, inf
+    when none need stopping."""
+    spare = (SIZE_ALLOWED if allowed is None else allowed) - int(by_search.sum())
     ranked = np.sort(log_count_nfa[~by_search])
     return -np.inf if spare < 0 else ranked[spare] if spare < len(ranked) else np.inf
+
+
+def level_below(limits) -> float:
+    """The loosest log level, rounded down to 0.01, strictly below every cell's limit."""
+    limit = np.min(limits)
+    level = np.floor(limit * 100) / 100
+    return level if level < limit else level - 0.01
 
 
 def size_level(frames) -> float:
@@ -397,14 +407,16 @@ def size_level(frames) -> float:
 
 
 def search_rows(n: int, layout: str, snr: float, seeds) -> list[tuple]:
-    """(seed, merged) of the global search alone (``method="search"``) on the unrelated pairs ``seeds``: the
-    merges consensus's fallback adds to its triangle test's, whatever that test's level."""
-    merged = []
+    """(seed, merged by the search's own test, log count NFA of its best hypothesis) of the global search
+    alone (``consensus.search_count_nfa``) on the unrelated pairs ``seeds``: the merges ``consensus_count``'s
+    fallback adds to its triangle test's, whatever that test's level, at any level of its own."""
+    rows = []
     for start in range(0, len(seeds), BATCH):
         chunk = [int(s) for s in seeds[start:start + BATCH]]
         sc = mm.simulate.make_pairs(n, 0.75, snr, chunk, unrelated=True, layout=layout)
-        merged += mm.merge_batch(sc.p, sc.q, sc.sigma, method="search").matched.tolist()
-    return list(zip(map(int, seeds), merged))
+        *_, nfa, count_nfa = mm.consensus.search_count_nfa(sc.p, sc.q, sc.sigma)
+        rows += zip(chunk, (nfa <= mm.search.SEARCH_NFA).tolist(), np.log(count_nfa).tolist())
+    return rows
 
 
 def count_level_frames(n: int, layout: str, snr: float, tuning: int):
@@ -412,27 +424,33 @@ def count_level_frames(n: int, layout: str, snr: float, tuning: int):
     rows, or only their tuning set) and the global search alone (``search_rows``) on the same pairs."""
     null, = kept_rows("statistics", n, layout, snr, (("tuning", TUNING_SEED, tuning, True, False),))
     search, = kept_rows("search", n, layout, snr, (("tuning", TUNING_SEED, tuning),), search_rows,
-                        ("seed", "merged"))
+                        ("seed", "merged", "log_count_nfa"))
     return null, search
 
 
 def count_level_table(cells: dict) -> pd.DataFrame:
-    """The count NFA's level for each map size, the search included: in each cell (``cells``: {(n, layout,
-    SNR): ``count_level_frames``}) the tuning pairs the search merges are spent first, and the level is the
-    loosest, rounded down to 0.01 in log, at which at most ``SIZE_ALLOWED`` tuning pairs merge in every cell
-    of the size (``consensus.COUNT_LEVELS`` holds them). ``cell_limit``: the log count NFA of the first
-    tuning pair the cell must stop (-inf when the search alone merges too many)."""
+    """``consensus_count``'s levels for each map size, on each cell's unrelated tuning pairs (``cells``:
+    {(n, layout, SNR): ``count_level_frames``}). First the search's (``consensus.SEARCH_COUNT_LEVELS``): the
+    loosest, rounded down to 0.01 in log, at which the search merges at most ``consensus.SEARCH_ALLOWED``
+    tuning pairs in every cell of the size, its own test's merges spent first; then the triangle test's
+    (``consensus.COUNT_LEVELS``): the loosest at which at most ``SIZE_ALLOWED`` tuning pairs merge in every
+    cell, the search's merges at its level spent first. ``search_limit``, ``cell_limit``: the log count NFA
+    of the first tuning pair the cell must stop (-inf when the merges spent first are already too many)."""
     table = pd.DataFrame([{"n_landmarks": n, "layout": layout, "snr_db": snr, "tuning_pairs": len(null),
-                           "search_merges": int(search.merged.sum()),
-                           "cell_limit": cell_limit(null.tri_log_count_nfa.to_numpy(),
-                                                    search.merged.to_numpy(dtype=bool))}
+                           "search_test_merges": int(search.merged.sum()),
+                           "search_limit": cell_limit(search.log_count_nfa.to_numpy(),
+                                                      search.merged.to_numpy(dtype=bool),
+                                                      mm.consensus.SEARCH_ALLOWED)}
                           for (n, layout, snr), (null, search) in cells.items()])
-    limit = table.groupby("n_landmarks").cell_limit.transform("min")
-    level = np.floor(limit * 100) / 100
-    table["log_level"] = np.where(level < limit, level, level - 0.01)
-    table["tuning_merges"] = [
-        int(np.sum((null.tri_log_count_nfa.to_numpy() <= lvl) | search.merged.to_numpy(dtype=bool)))
-        for (null, search), lvl in zip(cells.values(), table.log_level)]
+    table["search_log_level"] = table.groupby("n_landmarks").search_limit.transform(level_below)
+    by_search = [search.merged.to_numpy(dtype=bool) | (search.log_count_nfa.to_numpy() <= lvl)
+                 for (_, search), lvl in zip(cells.values(), table.search_log_level)]
+    table["search_merges"] = [int(merged.sum()) for merged in by_search]
+    table["cell_limit"] = [cell_limit(null.tri_log_count_nfa.to_numpy(), merged)
+                           for (null, _), merged in zip(cells.values(), by_search)]
+    table["log_level"] = table.groupby("n_landmarks").cell_limit.transform(level_below)
+    table["tuning_merges"] = [int(np.sum((null.tri_log_count_nfa.to_numpy() <= lvl) | merged))
+                              for (null, _), merged, lvl in zip(cells.values(), by_search, table.log_level)]
     return table
 
 

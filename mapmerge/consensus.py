@@ -55,7 +55,8 @@ from .correspondence import correspondences, resolve_correspondences
 from .matching import TriangleMatch
 from .neighbours import njit
 from .result import MergeBatch, build_batch
-from .triangles import centroids
+from .search import SEARCH_NFA, search_batch
+from .triangles import MapHulls, centroids
 
 #: Tail probability of every χ² gate (a true pair / landmark is rejected
 #: with this probability).
@@ -97,6 +98,17 @@ COUNT_GATE = 0.5
 #: 10-40 dB in 5 dB steps; ``experiments.small_maps --checks count_levels``). Larger maps keep
 #: ``MATCH_NFA``, where the NFA is tight.
 COUNT_LEVELS = {5: -4.43, 10: -13.33, 15: -20.75, 20: -25.64, 30: -41.08, 50: -54.81}
+#: The ``consensus_count`` variant's global search on the same maps: its best hypothesis is accepted when
+#: the search's own test passes (``search.SEARCH_NFA``) or when ``count_nfa_batch`` of its associations,
+#: with one hypothesis, is at most a log level per map size (keys as ``COUNT_LEVELS``). On 10-landmark
+#: maps the search's best hypothesis is the true transform for about half the related pairs at 20 dB,
+#: which its own bound, sized for every (θ, t) it tried, almost never accepts. Each level is the loosest
+#: (rounded down to 0.01) at which the search merges at most ``SEARCH_ALLOWED`` of 10,000 unrelated tuning
+#: pairs (seeds 300000+) in every cell of its size; ``COUNT_LEVELS`` are then set with these merges
+#: counted first (``experiments.small_maps --checks count_levels``).
+SEARCH_COUNT_LEVELS = {5: -np.inf, 10: -np.inf, 15: -np.inf, 20: -np.inf, 30: -np.inf, 50: -np.inf}
+#: Of the 3 tuning pairs per 10,000 a size's levels let through in its worst cell, the search's share.
+SEARCH_ALLOWED = 1
 #: The χ² quantile of the triangle gate: 3 vertices (6 coordinates).
 GATE_6 = float(chdtri(6, GATE_P))
 #: Hypotheses (most inliers first) refitted on their inliers and recounted.
@@ -413,14 +425,58 @@ def match_level(n_landmarks: int) -> float:
     return MATCH_NFA[min(most for most in MATCH_NFA if most >= n_landmarks)]
 
 
+def _size_entry(levels: dict, n_landmarks: int) -> float:
+    """The entry of ``levels`` ({most landmarks: level}) of the fewest landmarks that still covers the map."""
+    return levels[min(m for m in levels if m >= n_landmarks)]
+
+
 def triangle_test(n_landmarks: int, statistic: str = "nfa"):
     """The triangle test between maps whose smaller holds ``n_landmarks`` landmarks: (its batch statistic, the
     level at most which it accepts). ``"nfa"``: ``match_nfa_batch`` at ``match_level``; ``"count"``:
     ``count_nfa_batch`` at ``COUNT_LEVELS`` on maps of up to ``max(COUNT_LEVELS)`` landmarks, the ``"nfa"``
     test on larger ones."""
     if statistic == "count" and n_landmarks <= max(COUNT_LEVELS):
-        return count_nfa_batch, float(np.exp(COUNT_LEVELS[min(m for m in COUNT_LEVELS if m >= n_landmarks)]))
+        return count_nfa_batch, float(np.exp(_size_entry(COUNT_LEVELS, n_landmarks)))
     return match_nfa_batch, match_level(n_landmarks)
+
+
+def search_count_level(n_landmarks: int) -> float | None:
+    """``SEARCH_COUNT_LEVELS``' log level for maps whose smaller holds ``n_landmarks`` landmarks; None above
+    ``max(SEARCH_COUNT_LEVELS)``, where the search keeps its own test alone."""
+    return _size_entry(SEARCH_COUNT_LEVELS, n_landmarks) if n_landmarks <= max(SEARCH_COUNT_LEVELS) else None
+
+
+def search_count_nfa(P, Q, sigma, cov_p=None, cov_q=None, hulls=None, fallback=search_batch):
+    """The global search's best hypothesis of B map pairs associated whatever its NFA, and its two statistics.
+
+    Parameters
+    ----------
+    P, Q : (B, n_p, 2), (B, n_q, 2) ndarray
+    sigma : (B,) ndarray
+    cov_p, cov_q : (B, n, 2, 2) ndarray, optional
+    hulls : (MapHulls, MapHulls), optional
+    fallback : callable
+        ``search.search_batch`` or a ``search.SearchMemo``.
+
+    Returns
+    -------
+    trial, pairs, contested : (K,), (K, 2), (K,) ndarray
+        ``search_batch``'s associations at ``nfa_level=np.inf``.
+    nfa : (B,) ndarray
+        The search's own NFA of each pair's best hypothesis.
+    count_nfa : (B,) ndarray
+        ``count_nfa_batch`` of its associations with one hypothesis, at their n-point fit (inf where
+        fewer than 3 landmarks associate).
+    """
+    hulls = (MapHulls(P), MapHulls(Q)) if hulls is None else hulls
+    trial, pairs, contested, nfa = fallback(P, Q, sigma, cov_p, cov_q, hulls, nfa_level=np.inf)
+    count_nfa = np.full(len(P), np.inf)
+    active, local, kept, theta, t, _, cov = _fitted(P, Q, sigma, trial, pairs)
+    if active.size:
+        count_nfa[active] = count_nfa_batch(P[active], Q[active], theta, t, cov, local, kept,
+                                            np.ones(active.size), sigma[active], covariance_rows(cov_p, active),
+                                            covariance_rows(cov_q, active), [hulls[0][b] for b in active])
+    return trial, pairs, contested, nfa, count_nfa
 
 
 def match_nfa(P, Q, alignment, pairs, n_hypotheses: int, sigma: float, *, cov_p=None, cov_q=None,
@@ -662,11 +718,16 @@ def consensus_merge(P, Q, sigma, match: TriangleMatch, log_tau, cov_p=None, cov_
                                               statistic)
     if fallback is not None:
         unmatched = np.flatnonzero(np.bincount(trial, minlength=len(P)) == 0)
+        level = search_count_level(min(P.shape[1], Q.shape[1])) if statistic == "count" else None
         if unmatched.size:
-            found, more, more_contested, _ = fallback(P[unmatched], Q[unmatched], sigma[unmatched],
-                                                      covariance_rows(cov_p, unmatched),
-                                                      covariance_rows(cov_q, unmatched),
-                                                      (hulls_p.take(unmatched), hulls_q.take(unmatched)))
+            args = (P[unmatched], Q[unmatched], sigma[unmatched], covariance_rows(cov_p, unmatched),
+                    covariance_rows(cov_q, unmatched), (hulls_p.take(unmatched), hulls_q.take(unmatched)))
+            if level is None:
+                found, more, more_contested, _ = fallback(*args)
+            else:
+                found, more, more_contested, nfa, count_nfa = search_count_nfa(*args, fallback=fallback)
+                accepted = ((nfa <= SEARCH_NFA) | (np.log(count_nfa) <= level))[found]
+                found, more, more_contested = found[accepted], more[accepted], more_contested[accepted]
             trial = np.concatenate([trial, unmatched[found]])
             order = np.argsort(trial, kind="stable")
             trial = trial[order]

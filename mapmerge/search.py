@@ -339,10 +339,10 @@ def _nearest_pairs(Q, cos, sin, t, points, index, keys, ox, oy, h, nx, ny, bound
     return True, m
 
 
-def _best_hypotheses(P, Q, sigma, cov_p, cov_q, hulls):
-    """Steps 1-4 on B map pairs: each one's best hypothesis when significant (else None) and its NFA
-    (inf when none could be refined, or the noise exceeds ``MAX_NOISE_SPACING`` landmark spacings).
-    ``hulls``: each P's convex hull."""
+def _best_hypotheses(P, Q, sigma, cov_p, cov_q, hulls, nfa_level=SEARCH_NFA):
+    """Steps 1-4 on B map pairs: each one's best hypothesis when its NFA is at most ``nfa_level`` (else None)
+    and that NFA (inf when none could be refined, or the noise exceeds ``MAX_NOISE_SPACING`` landmark
+    spacings). ``hulls``: each P's convex hull."""
     B = len(P)
     best, nfa = [None] * B, np.full(B, np.inf)
     r = np.array([pair_noise(float(sigma[b]), covariance_rows(cov_p, b),
@@ -383,13 +383,13 @@ def _best_hypotheses(P, Q, sigma, cov_p, cov_q, hulls):
         h = bounds[k] + int(np.argmin(log_nfa))
         b = live[k]
         nfa[b] = float(np.exp(min(log_nfa[h - bounds[k]], 700.0)))
-        if not log_nfa[h - bounds[k]] > np.log(SEARCH_NFA):
+        if not log_nfa[h - bounds[k]] > np.log(nfa_level):
             best[b] = dataclasses.replace(fits.alignment(h, P[b], Q[b], float(sigma[b])), theta=float(theta[h]),
                                           t=t[h])
     return best, nfa
 
 
-def search_batch(P, Q, sigma, cov_p=None, cov_q=None, hulls=None):
+def search_batch(P, Q, sigma, cov_p=None, cov_q=None, hulls=None, nfa_level=SEARCH_NFA):
     """Landmark associations of B map pairs found by the global search.
 
     Every pair's hypotheses are searched, refined and tested together
@@ -404,12 +404,15 @@ def search_batch(P, Q, sigma, cov_p=None, cov_q=None, hulls=None):
         Per-landmark covariances (the pair noise and the association use them).
     hulls : (MapHulls, MapHulls), optional
         The convex hulls of P and Q, when the caller keeps them.
+    nfa_level : float, default ``SEARCH_NFA``
+        A pair's best hypothesis is associated when its NFA is at most this
+        (``np.inf``: every pair's, for a caller with a test of its own).
 
     Returns
     -------
     trial : (K,) int ndarray
         Map pair of each association (none for a pair whose best hypothesis
-        is not significant or associates fewer than 3 landmarks).
+        is over ``nfa_level`` or associates fewer than 3 landmarks).
     pairs : (K, 2) int ndarray
         Associations (p index, q index), by map pair, then p index.
     contested : (K,) bool ndarray
@@ -420,7 +423,7 @@ def search_batch(P, Q, sigma, cov_p=None, cov_q=None, hulls=None):
     """
     B = len(P)
     hulls_p, hulls_q = (MapHulls(P), MapHulls(Q)) if hulls is None else hulls
-    best, nfa = _best_hypotheses(P, Q, sigma, cov_p, cov_q, [hulls_p[b] for b in range(B)])
+    best, nfa = _best_hypotheses(P, Q, sigma, cov_p, cov_q, [hulls_p[b] for b in range(B)], nfa_level)
     rows = np.array([b for b, al in enumerate(best) if al is not None], dtype=np.intp)
     if rows.size == 0:
         return np.empty(0, dtype=np.intp), np.empty((0, 2), dtype=np.intp), np.empty(0, dtype=bool), nfa
@@ -478,9 +481,9 @@ class SearchMemo:
     def __init__(self) -> None:
         self._answers: dict[bytes, tuple] = {}
 
-    def __call__(self, P, Q, sigma, cov_p=None, cov_q=None, hulls=None):
-        keys = [_digest(P[b], Q[b], np.float64(sigma[b]), covariance_rows(cov_p, b),
-                        covariance_rows(cov_q, b)) for b in range(len(P))]
+    def __call__(self, P, Q, sigma, cov_p=None, cov_q=None, hulls=None, nfa_level=SEARCH_NFA):
+        keys = [_digest(P[b], Q[b], np.float64(sigma[b]), covariance_rows(cov_p, b), covariance_rows(cov_q, b),
+                        np.float64(nfa_level)) for b in range(len(P))]
         first = {}  # each map pair not seen before, once
         for b, key in enumerate(keys):
             if key not in self._answers:
@@ -491,7 +494,8 @@ class SearchMemo:
                                                         covariance_rows(cov_p, new),
                                                         covariance_rows(cov_q, new),
                                                         None if hulls is None else (hulls[0].take(new),
-                                                                                    hulls[1].take(new)))
+                                                                                    hulls[1].take(new)),
+                                                        nfa_level)
             bounds = np.searchsorted(trial, np.arange(new.size + 1))
             for k, b in enumerate(new):
                 sel = slice(bounds[k], bounds[k + 1])

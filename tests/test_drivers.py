@@ -180,26 +180,37 @@ def test_small_maps_count_check_runs_consensus_count_beside_consensus_and_the_pe
 
 def test_small_maps_count_levels_spend_the_search_merges_first(tmp_path, monkeypatch):
     from experiments import small_maps
+    from mapmerge import consensus
 
     monkeypatch.setattr(small_maps, "ROWS", tmp_path)
     monkeypatch.setattr(small_maps, "SIZE_ALLOWED", 2)
+    monkeypatch.setattr(consensus, "SEARCH_ALLOWED", 1)
     frames = small_maps.count_level_frames(10, "strip", 20.0, 30)
     assert len(frames[0]) == len(frames[1]) == 30 and (frames[0].seed.to_numpy() == frames[1].seed.to_numpy()).all()
+    assert np.isfinite(frames[1].log_count_nfa).any()
     assert len(list(tmp_path.glob("search_10_strip_20_*.csv"))) == 1
 
-    def cell(counts, merged):
-        return pd.DataFrame({"tri_log_count_nfa": counts}), pd.DataFrame({"merged": merged})
+    def cell(counts, merged, search_counts):
+        return (pd.DataFrame({"tri_log_count_nfa": counts}),
+                pd.DataFrame({"merged": merged, "log_count_nfa": search_counts}))
 
     table = small_maps.count_level_table({
-        (10, "strip", 20.0): cell([-9.0, -5.0, -4.0, -1.0, 0.0], [False, True, False, False, False]),
-        (10, "strip", 30.0): cell([-8.0, -7.5, -3.0, 2.0], [False] * 4),
-        (20, "strip", 20.0): cell([-1.0, 1.0, 2.0], [True, True, False]),
-        (20, "strip", 30.0): cell([-2.0, 3.0, 5.0], [True, True, True])})
-    # 10 landmarks: the 20 dB cell spends one of two on the search, so -4 is the first it must stop; the
-    # 30 dB cell stops -3; the size's level is just below the lower, and lets at most 2 through in each.
+        (10, "strip", 20.0): cell([-9.0, -5.0, -4.0, -1.0, 0.0], [False, True, False, False, False],
+                                  [np.inf, -30.0, -2.0, -1.0, np.inf]),
+        (10, "strip", 30.0): cell([-8.0, -7.5, -3.0, 2.0], [False] * 4, [-6.0, -9.0, np.inf, -5.0]),
+        (20, "strip", 20.0): cell([-1.0, 1.0, 2.0], [True, True, False], [0.0, 0.0, 0.0]),
+        (20, "strip", 30.0): cell([-2.0, 3.0, 5.0], [True, True, True], [0.0, 0.0, 0.0])})
+    # The search, one allowed a cell: at 20 dB its own test spends it, so -2 must stop; at 30 dB -9 may
+    # merge and -6 must stop. The size's search level is just below the lower limit, and merges one pair
+    # in each cell (the second: by its own test at 20 dB, by its count at 30 dB).
+    assert table.search_limit.tolist()[:2] == [-2.0, -6.0] and (table.search_log_level[:2] == -6.01).all()
+    assert table.search_merges.tolist()[:2] == [1, 1]
+    # Triangles, two allowed: each cell has spent one on the search, so 20 dB stops -4 (-9 may merge) and
+    # 30 dB stops -3 (-8 may merge); the level is just below the lower, and lets two through in each.
     assert table.cell_limit.tolist()[:2] == [-4.0, -3.0] and (table.log_level[:2] == -4.01).all()
     assert table.tuning_merges.tolist()[:2] == [2, 2]
-    # 20 landmarks: at 20 dB the search spends the allowance, so the triangle test must stop its first pair;
-    # at 30 dB the search alone merges too many, and no level is allowed.
+    # 20 landmarks: the search's own test spends the allowance at 20 dB and exceeds it at 30 dB, so no search
+    # level; at 20 dB the triangle test must stop its first pair, at 30 dB no level is allowed at all.
+    assert table.search_limit.tolist()[2:] == [-np.inf, -np.inf] and (table.search_log_level[2:] == -np.inf).all()
     assert table.cell_limit.tolist()[2:] == [2.0, -np.inf] and (table.log_level[2:] == -np.inf).all()
     assert table.tuning_merges.tolist()[2:] == [2, 3]
