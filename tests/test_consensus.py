@@ -200,6 +200,22 @@ def test_consensus_count_finds_more_on_ten_landmark_maps_and_is_consensus_on_lar
     np.testing.assert_array_equal(count.pairs, ours.pairs)
 
 
+def test_consensus_count_accepts_the_search_by_its_count(monkeypatch):
+    """Two 10-landmark interleaved pairs at 20 dB whose triangles give no match and whose search hypothesis
+    fails the search's own test, but whose association count passes ``SEARCH_COUNT_LEVELS``: found with it,
+    unmerged without it."""
+    from mapmerge.consensus import SEARCH_COUNT_LEVELS, search_count_nfa
+    from mapmerge.search import SEARCH_NFA
+
+    sc = mm.simulate.make_pairs(10, 0.75, 20.0, [14, 18], layout="interleaved")
+    *_, nfa, count_nfa = search_count_nfa(sc.p, sc.q, sc.sigma)
+    assert (nfa > SEARCH_NFA).all() and (np.log(count_nfa) <= SEARCH_COUNT_LEVELS[10]).all()
+    err = metrics.map_errors_batch(sc, mm.merge_batch(sc.p, sc.q, sc.sigma, method="consensus_count"))
+    assert err["transform_found"].all()
+    monkeypatch.setitem(SEARCH_COUNT_LEVELS, 10, -np.inf)
+    assert not mm.merge_batch(sc.p, sc.q, sc.sigma, method="consensus_count").matched.any()
+
+
 def test_count_levels_are_the_committed_tunings():
     """results/detector/small/count_levels.csv (10,000 unrelated tuning pairs per cell) gives ``COUNT_LEVELS``
     and ``SEARCH_COUNT_LEVELS``: each size's search level lets the search merge at most ``SEARCH_ALLOWED``
