@@ -273,12 +273,17 @@ def acceptance_rows(n: int, layout: str, snr: float, seeds, unrelated: bool, sea
     return rows
 
 
-def merged_counts(n: int, layout: str, snr: float, related: int, holdout: int, method: str = "consensus") -> dict:
+def merged_counts(n: int, layout: str, snr: float, related: int, holdout: int, method: str = "consensus",
+                  oracle: bool = False) -> dict:
     """``method`` under whatever acceptance is in force: false merges on ``holdout`` held-out unrelated pairs
     (seeds 600000+k), found rate (with its interval) and wrong merges on ``related`` related pairs of seeds
     0+k, the pairs ``experiments.peers --equal-rate`` gives every peer; ``wrong_over_5_deg``: the wrong
-    merges whose rotation is over 5° off (the others are near misses of the found rule)."""
-    counts = {"false_merges": 0, "found": 0, "wrong_merges": 0, "wrong_over_5_deg": 0}
+    merges whose rotation is over 5° off (the others are near misses of the found rule). With ``oracle``,
+    also ``oracle_found``, the related pairs whose fit on every true correspondence
+    (``metrics.correspondence_oracle_transform``) meets the found rule, and ``wrong_oracle_found``, the
+    wrong merges among them: the rest are pairs that no association could merge within the rule."""
+    counts = dict.fromkeys(("false_merges", "found", "wrong_merges", "wrong_over_5_deg", "oracle_found",
+                            "wrong_oracle_found"), 0)
     for unrelated, base, count in ((True, HOLDOUT_SEED, holdout), (False, 0, related)):
         for start in range(0, count, BATCH):
             seeds = [base + k for k in range(start, min(start + BATCH, count))]
@@ -286,17 +291,24 @@ def merged_counts(n: int, layout: str, snr: float, related: int, holdout: int, m
             err = mm.metrics.map_errors_batch(sc, mm.merge_batch(sc.p, sc.q, sc.sigma, method=method))
             if unrelated:
                 counts["false_merges"] += int(err["matched"].sum())
-            else:
-                counts["found"] += int((err["matched"] & err["transform_found"]).sum())
-                wrong = err["matched"] & ~err["transform_found"]
-                counts["wrong_merges"] += int(wrong.sum())
-                counts["wrong_over_5_deg"] += int(np.sum(wrong & (np.abs(err["rot_err_deg"]) > 5)))
+                continue
+            counts["found"] += int((err["matched"] & err["transform_found"]).sum())
+            wrong = err["matched"] & ~err["transform_found"]
+            counts["wrong_merges"] += int(wrong.sum())
+            counts["wrong_over_5_deg"] += int(np.sum(wrong & (np.abs(err["rot_err_deg"]) > 5)))
+            if oracle:
+                fits = [mm.metrics.correspondence_oracle_transform(sc[b]) for b in range(len(seeds))]
+                reachable = np.array([mm.metrics.transform_found(sc[b], f.theta, f.t) for b, f in enumerate(fits)])
+                counts["oracle_found"] += int(reachable.sum())
+                counts["wrong_oracle_found"] += int((wrong & reachable).sum())
     lo, hi = wilson(counts["found"], related)
     return {"holdout_pairs": holdout, "false_merges": counts["false_merges"],
             "false_upper": float(wilson(counts["false_merges"], holdout)[1]) if holdout else np.nan,
             "related_pairs": related,
             "found_rate": counts["found"] / related, "found_lo": float(lo), "found_hi": float(hi),
-            "wrong_merges": counts["wrong_merges"], "wrong_over_5_deg": counts["wrong_over_5_deg"]}
+            "wrong_merges": counts["wrong_merges"], "wrong_over_5_deg": counts["wrong_over_5_deg"],
+            **({"oracle_found": counts["oracle_found"], "wrong_oracle_found": counts["wrong_oracle_found"]}
+               if oracle else {})}
 
 
 def level_table(n: int, layout: str, snr: float, level: float, related: int, holdout: int) -> dict:
@@ -307,15 +319,18 @@ def level_table(n: int, layout: str, snr: float, level: float, related: int, hol
 
 
 def count_table(n: int, layout: str, snr: float, related: int, holdout: int, equal_rate: pd.DataFrame) -> dict:
-    """``consensus_count`` (the count NFA at ``consensus.COUNT_LEVELS``, the search included): ``merged_counts``,
-    and consensus's found rate and wrong merges on the same related pairs, beside the best peer's at one
-    false-merge rate; ``vs_consensus``, ``vs_peer``: ``verdict`` of consensus_count's found rate."""
+    """``consensus_count`` (the count NFA at ``consensus.COUNT_LEVELS`` and ``consensus.SEARCH_COUNT_LEVELS``):
+    ``merged_counts`` with the oracle's columns, and consensus's found rate and wrong merges on the same
+    related pairs, beside the best peer's at one false-merge rate; ``vs_consensus``, ``vs_peer``:
+    ``verdict`` of consensus_count's found rate."""
     row = {"n_landmarks": n, "layout": layout, "snr_db": snr,
            "log_level": np.log(mm.consensus.triangle_test(n, "count")[1]),
-           **merged_counts(n, layout, snr, related, holdout, "consensus_count")}
-    ours = merged_counts(n, layout, snr, related, 0)
+           "search_log_level": mm.consensus.search_count_level(n),
+           **merged_counts(n, layout, snr, related, holdout, "consensus_count", oracle=True)}
+    ours = merged_counts(n, layout, snr, related, 0, oracle=True)
     row.update(consensus_found=ours["found_rate"], consensus_lo=ours["found_lo"], consensus_hi=ours["found_hi"],
                consensus_wrong=ours["wrong_merges"], consensus_wrong_over_5_deg=ours["wrong_over_5_deg"],
+               consensus_wrong_oracle_found=ours["wrong_oracle_found"],
                vs_consensus=verdict(row["found_lo"], row["found_hi"], pd.Series({"found_lo": ours["found_lo"],
                                                                                "found_hi": ours["found_hi"]})))
     row.update(peer_columns(equal_rate, layout, n, snr, {"vs_peer": (row["found_lo"], row["found_hi"])}))

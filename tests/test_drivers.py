@@ -172,6 +172,9 @@ def test_small_maps_count_check_runs_consensus_count_beside_consensus_and_the_pe
     assert row["consensus_lo"] <= row["consensus_found"] <= row["consensus_hi"] and 0 <= row["consensus_wrong"] <= 12
     assert row["vs_consensus"] in ("ahead", "level", "behind")
     assert 0 <= row["wrong_over_5_deg"] <= row["wrong_merges"] and 0 <= row["consensus_wrong_over_5_deg"] <= 12
+    assert 0 <= row["wrong_oracle_found"] <= min(row["wrong_merges"], row["oracle_found"]) <= 12
+    assert 0 <= row["consensus_wrong_oracle_found"] <= row["consensus_wrong"]
+    assert row["search_log_level"] == consensus.SEARCH_COUNT_LEVELS[10]
     assert row["found_lo"] <= row["found_rate"] <= row["found_hi"] and 0 <= row["false_merges"] <= 3
     # The levels check at consensus's own level counts the same pairs the same way.
     shipped = small_maps.level_table(10, "strip", 20.0, consensus.match_level(10), 12, 3)
