@@ -65,11 +65,12 @@ Checks beside ``experiments.detector``'s tables (``stages``), chosen with
    hypothesis) and the count NFA of the triangle test: per map size the
    loosest search level at which at most ``consensus.SEARCH_ALLOWED``
    tuning pairs merge in every cell, then the loosest triangle level at
-   which at most ``SIZE_ALLOWED`` merge, the search's merges counted first
-   (``count_level_table``);
+   which at most ``consensus.TUNING_ALLOWED`` merge, the search's merges
+   counted first (``count_level_table``);
 8. ``count``: the ``consensus_count`` method (the count NFA at
    ``consensus.COUNT_LEVELS``, the search included): false merges on
-   ``--pairs`` held-out unrelated pairs (seeds 600000+k), found rate and
+   ``--pairs`` held-out unrelated pairs (seeds ``--holdout-seed``+k,
+   600000 unless given), found rate and
    wrong merges on ``--related`` related pairs (seeds 0+k), beside
    consensus and the best peer of ``--peers``;
 9. ``reference``: no merging. Per small-map cell (up to 20 landmarks) of
@@ -274,9 +275,9 @@ def acceptance_rows(n: int, layout: str, snr: float, seeds, unrelated: bool, sea
 
 
 def merged_counts(n: int, layout: str, snr: float, related: int, holdout: int, method: str = "consensus",
-                  oracle: bool = False) -> dict:
+                  oracle: bool = False, holdout_seed: int = HOLDOUT_SEED) -> dict:
     """``method`` under whatever acceptance is in force: false merges on ``holdout`` held-out unrelated pairs
-    (seeds 600000+k), found rate (with its interval) and wrong merges on ``related`` related pairs of seeds
+    (seeds ``holdout_seed``+k), found rate (with its interval) and wrong merges on ``related`` related pairs of seeds
     0+k, the pairs ``experiments.peers --equal-rate`` gives every peer; ``wrong_over_5_deg``: the wrong
     merges whose rotation is over 5° off (the others are near misses of the found rule). With ``oracle``,
     also ``oracle_found``, the related pairs whose fit on every true correspondence
@@ -284,7 +285,7 @@ def merged_counts(n: int, layout: str, snr: float, related: int, holdout: int, m
     wrong merges among them: the rest are pairs that no association could merge within the rule."""
     counts = dict.fromkeys(("false_merges", "found", "wrong_merges", "wrong_over_5_deg", "oracle_found",
                             "wrong_oracle_found"), 0)
-    for unrelated, base, count in ((True, HOLDOUT_SEED, holdout), (False, 0, related)):
+    for unrelated, base, count in ((True, holdout_seed, holdout), (False, 0, related)):
         for start in range(0, count, BATCH):
             seeds = [base + k for k in range(start, min(start + BATCH, count))]
             sc = mm.simulate.make_pairs(n, 0.75, snr, seeds, unrelated=unrelated, layout=layout)
@@ -302,7 +303,7 @@ def merged_counts(n: int, layout: str, snr: float, related: int, holdout: int, m
                 counts["oracle_found"] += int(reachable.sum())
                 counts["wrong_oracle_found"] += int((wrong & reachable).sum())
     lo, hi = wilson(counts["found"], related)
-    return {"holdout_pairs": holdout, "false_merges": counts["false_merges"],
+    return {"holdout_seed": holdout_seed, "holdout_pairs": holdout, "false_merges": counts["false_merges"],
             "false_upper": float(wilson(counts["false_merges"], holdout)[1]) if holdout else np.nan,
             "related_pairs": related,
             "found_rate": counts["found"] / related, "found_lo": float(lo), "found_hi": float(hi),
@@ -318,7 +319,8 @@ def level_table(n: int, layout: str, snr: float, level: float, related: int, hol
                 **merged_counts(n, layout, snr, related, holdout)}
 
 
-def count_table(n: int, layout: str, snr: float, related: int, holdout: int, equal_rate: pd.DataFrame) -> dict:
+def count_table(n: int, layout: str, snr: float, related: int, holdout: int, equal_rate: pd.DataFrame,
+                holdout_seed: int = HOLDOUT_SEED) -> dict:
     """``consensus_count`` (the count NFA at ``consensus.COUNT_LEVELS`` and ``consensus.SEARCH_COUNT_LEVELS``):
     ``merged_counts`` with the oracle's columns, and consensus's found rate and wrong merges on the same
     related pairs, beside the best peer's at one false-merge rate; ``vs_consensus``, ``vs_peer``:
@@ -326,7 +328,8 @@ def count_table(n: int, layout: str, snr: float, related: int, holdout: int, equ
     row = {"n_landmarks": n, "layout": layout, "snr_db": snr,
            "log_level": np.log(mm.consensus.triangle_test(n, "count")[1]),
            "search_log_level": mm.consensus.search_count_level(n),
-           **merged_counts(n, layout, snr, related, holdout, "consensus_count", oracle=True)}
+           **merged_counts(n, layout, snr, related, holdout, "consensus_count", oracle=True,
+                           holdout_seed=holdout_seed)}
     ours = merged_counts(n, layout, snr, related, 0, oracle=True)
     row.update(consensus_found=ours["found_rate"], consensus_lo=ours["found_lo"], consensus_hi=ours["found_hi"],
                consensus_wrong=ours["wrong_merges"], consensus_wrong_over_5_deg=ours["wrong_over_5_deg"],
@@ -448,8 +451,8 @@ def count_level_table(cells: dict) -> pd.DataFrame:
     {(n, layout, SNR): ``count_level_frames``}). First the search's (``consensus.SEARCH_COUNT_LEVELS``): the
     loosest, rounded down to 0.01 in log, at which the search merges at most ``consensus.SEARCH_ALLOWED``
     tuning pairs in every cell of the size, its own test's merges spent first; then the triangle test's
-    (``consensus.COUNT_LEVELS``): the loosest at which at most ``SIZE_ALLOWED`` tuning pairs merge in every
-    cell, the search's merges at its level spent first. ``search_limit``, ``cell_limit``: the log count NFA
+    (``consensus.COUNT_LEVELS``): the loosest at which at most ``consensus.TUNING_ALLOWED`` tuning pairs merge
+    in every cell, the search's merges at its level spent first. ``search_limit``, ``cell_limit``: the log count NFA
     of the first tuning pair the cell must stop (-inf when the merges spent first are already too many)."""
     table = pd.DataFrame([{"n_landmarks": n, "layout": layout, "snr_db": snr, "tuning_pairs": len(null),
                            "search_test_merges": int(search.merged.sum()),
@@ -461,7 +464,8 @@ def count_level_table(cells: dict) -> pd.DataFrame:
     by_search = [search.merged.to_numpy(dtype=bool) | (search.log_count_nfa.to_numpy() <= lvl)
                  for (_, search), lvl in zip(cells.values(), table.search_log_level)]
     table["search_merges"] = [int(merged.sum()) for merged in by_search]
-    table["cell_limit"] = [cell_limit(null.tri_log_count_nfa.to_numpy(), merged)
+    table["cell_limit"] = [cell_limit(null.tri_log_count_nfa.to_numpy(), merged,
+                                      mm.consensus.TUNING_ALLOWED)
                            for (null, _), merged in zip(cells.values(), by_search)]
     table["log_level"] = table.groupby("n_landmarks").cell_limit.transform(level_below)
     table["tuning_merges"] = [int(np.sum((null.tri_log_count_nfa.to_numpy() <= lvl) | merged))
@@ -518,6 +522,8 @@ def main(argv=None) -> None:
     parser.add_argument("--landmarks", type=int, nargs="+", default=[10, 20])
     parser.add_argument("--snrs", type=float, nargs="+", default=[20.0, 30.0])
     parser.add_argument("--pairs", type=int, default=10_000, help="held-out unrelated pairs per cell")
+    parser.add_argument("--holdout-seed", type=int, default=HOLDOUT_SEED,
+                        help="first seed of the count check's held-out unrelated pairs")
     parser.add_argument("--bound-pairs", type=int, default=2_000, help="unrelated pairs per cell of the bound check")
     parser.add_argument("--out", default="results/detector/small")
     parser.add_argument("--peers", default="results/peers/equal_rate.csv",
@@ -606,7 +612,8 @@ def main(argv=None) -> None:
             print(path)
     if "count" in args.checks:
         table = pd.DataFrame(Parallel(n_jobs=args.n_jobs)(
-            delayed(count_table)(*cell, args.related, args.pairs, equal_rate) for cell in layout_cells))
+            delayed(count_table)(*cell, args.related, args.pairs, equal_rate, args.holdout_seed)
+            for cell in layout_cells))
         for path in save_table(table, out / "count"):
             print(path)
     if "reference" in args.checks:

@@ -219,18 +219,19 @@ def test_consensus_count_accepts_the_search_by_its_count(monkeypatch):
 def test_count_levels_are_the_committed_tunings():
     """results/detector/small/count_levels.csv (10,000 unrelated tuning pairs per cell) gives ``COUNT_LEVELS``
     and ``SEARCH_COUNT_LEVELS``: each size's search level lets the search merge at most ``SEARCH_ALLOWED``
-    tuning pairs of any cell, and both levels together at most 3."""
+    tuning pairs of any cell, and both levels together at most ``TUNING_ALLOWED``."""
     from pathlib import Path
 
     import pandas as pd
 
-    from mapmerge.consensus import COUNT_LEVELS, SEARCH_ALLOWED, SEARCH_COUNT_LEVELS
+    from mapmerge.consensus import COUNT_LEVELS, SEARCH_ALLOWED, SEARCH_COUNT_LEVELS, TUNING_ALLOWED
 
     table = pd.read_csv(Path(__file__).resolve().parents[1] / "results/detector/small/count_levels.csv")
     assert set(table.n_landmarks) == set(COUNT_LEVELS) == set(SEARCH_COUNT_LEVELS)
     assert (table.tuning_pairs == 10_000).all()
     for n, cells in table.groupby("n_landmarks"):
-        assert cells.log_level.to_numpy() == pytest.approx(COUNT_LEVELS[n], abs=1e-9) and cells.tuning_merges.max() <= 3
+        assert cells.log_level.to_numpy() == pytest.approx(COUNT_LEVELS[n], abs=1e-9)
+        assert cells.tuning_merges.max() <= TUNING_ALLOWED
         assert cells.search_log_level.to_numpy() == pytest.approx(SEARCH_COUNT_LEVELS[n], abs=1e-9)
         assert (cells.search_merges <= np.maximum(SEARCH_ALLOWED, cells.search_test_merges)).all()
         assert len(cells) == 14  # both layouts, 10-40 dB

@@ -186,7 +186,7 @@ def test_small_maps_count_levels_spend_the_search_merges_first(tmp_path, monkeyp
     from mapmerge import consensus
 
     monkeypatch.setattr(small_maps, "ROWS", tmp_path)
-    monkeypatch.setattr(small_maps, "SIZE_ALLOWED", 2)
+    monkeypatch.setattr(consensus, "TUNING_ALLOWED", 2)
     monkeypatch.setattr(consensus, "SEARCH_ALLOWED", 1)
     frames = small_maps.count_level_frames(10, "strip", 20.0, 30)
     assert len(frames[0]) == len(frames[1]) == 30 and (frames[0].seed.to_numpy() == frames[1].seed.to_numpy()).all()
