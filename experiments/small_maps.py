@@ -277,8 +277,8 @@ def acceptance_rows(n: int, layout: str, snr: float, seeds, unrelated: bool, sea
 def merged_counts(n: int, layout: str, snr: float, related: int, holdout: int, method: str = "consensus",
                   oracle: bool = False, holdout_seed: int = HOLDOUT_SEED) -> dict:
     """``method`` under whatever acceptance is in force: false merges on ``holdout`` held-out unrelated pairs
-    (seeds ``holdout_seed``+k), found rate (with its interval) and wrong merges on ``related`` related pairs of seeds
-    0+k, the pairs ``experiments.peers --equal-rate`` gives every peer; ``wrong_over_5_deg``: the wrong
+    (seeds ``holdout_seed``+k), found rate (with its interval) and wrong merges on ``related`` related pairs of
+    seeds 0+k, the pairs ``experiments.peers --equal-rate`` gives every peer; ``wrong_over_5_deg``: the wrong
     merges whose rotation is over 5° off (the others are near misses of the found rule). With ``oracle``,
     also ``oracle_found``, the related pairs whose fit on every true correspondence
     (``metrics.correspondence_oracle_transform``) meets the found rule, and ``wrong_oracle_found``, the
@@ -404,8 +404,8 @@ def statistics_frames(n: int, layout: str, snr: float, tuning: int, related: int
 
 def cell_limit(log_count_nfa: np.ndarray, by_search: np.ndarray, allowed: int | None = None) -> float:
     """The log count NFA of the first tuning pair a cell must stop so that at most ``allowed`` (default
-    ``SIZE_ALLOWED``) of its tuning pairs merge, those merged already (``by_search``) spent first: -inf when those alone are too many, inf
-    when none need stopping."""
+    ``SIZE_ALLOWED``) of its tuning pairs merge, those merged already (``by_search``) spent first: -inf when
+    those alone are too many, inf when none need stopping."""
     spare = (SIZE_ALLOWED if allowed is None else allowed) - int(by_search.sum())
     ranked = np.sort(log_count_nfa[~by_search])
     return -np.inf if spare < 0 else ranked[spare] if spare < len(ranked) else np.inf
@@ -421,7 +421,8 @@ def level_below(limits) -> float:
 def size_level(frames) -> float:
     """The count NFA's level for one map size, triangle test alone: the loosest that lets at most
     ``SIZE_ALLOWED`` tuning pairs through in every cell (``frames``: each cell's ``statistics_frames``)."""
-    return min(cell_limit(null.tri_log_count_nfa.to_numpy(), np.zeros(len(null), dtype=bool)) for null, _, _ in frames)
+    return min(cell_limit(null.tri_log_count_nfa.to_numpy(), np.zeros(len(null), dtype=bool))
+               for null, _, _ in frames)
 
 
 def search_rows(n: int, layout: str, snr: float, seeds) -> list[tuple]:
@@ -432,8 +433,8 @@ def search_rows(n: int, layout: str, snr: float, seeds) -> list[tuple]:
     for start in range(0, len(seeds), BATCH):
         chunk = [int(s) for s in seeds[start:start + BATCH]]
         sc = mm.simulate.make_pairs(n, 0.75, snr, chunk, unrelated=True, layout=layout)
-        *_, nfa, count_nfa = mm.consensus.search_count_nfa(sc.p, sc.q, sc.sigma)
-        rows += zip(chunk, (nfa <= mm.search.SEARCH_NFA).tolist(), np.log(count_nfa).tolist())
+        *_, nfa, log_count_nfa = mm.consensus.search_count_nfa(sc.p, sc.q, sc.sigma)
+        rows += zip(chunk, (nfa <= mm.search.SEARCH_NFA).tolist(), log_count_nfa.tolist())
     return rows
 
 
@@ -452,8 +453,9 @@ def count_level_table(cells: dict) -> pd.DataFrame:
     loosest, rounded down to 0.01 in log, at which the search merges at most ``consensus.SEARCH_ALLOWED``
     tuning pairs in every cell of the size, its own test's merges spent first; then the triangle test's
     (``consensus.COUNT_LEVELS``): the loosest at which at most ``consensus.TUNING_ALLOWED`` tuning pairs merge
-    in every cell, the search's merges at its level spent first. ``search_limit``, ``cell_limit``: the log count NFA
-    of the first tuning pair the cell must stop (-inf when the merges spent first are already too many)."""
+    in every cell, the search's merges at its level spent first. ``search_limit``, ``cell_limit``: the log
+    count NFA of the first tuning pair the cell must stop (-inf when the merges spent first are already too
+    many)."""
     table = pd.DataFrame([{"n_landmarks": n, "layout": layout, "snr_db": snr, "tuning_pairs": len(null),
                            "search_test_merges": int(search.merged.sum()),
                            "search_limit": cell_limit(search.log_count_nfa.to_numpy(),

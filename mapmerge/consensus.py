@@ -105,8 +105,8 @@ COUNT_LEVELS = {5: -4.66, 10: -13.9, 15: -20.94, 20: -26.25, 30: -43.43, 50: -56
 #: which its own bound, sized for every (θ, t) it tried, almost never accepts. Each level is the loosest
 #: (rounded down to 0.01) at which the search merges at most ``SEARCH_ALLOWED`` of 10,000 unrelated tuning
 #: pairs (seeds 300000+) in every cell of its size; ``COUNT_LEVELS`` are then set with these merges
-#: counted first (``experiments.small_maps --checks count_levels``). None at 30 landmarks: there the
-#: search's own test already merges 2 tuning pairs in two cells (10 dB).
+#: counted first (``experiments.small_maps --checks count_levels``). None (-inf) at 30 landmarks: there
+#: the search's own test already merges 2 tuning pairs in two cells (10 dB).
 SEARCH_COUNT_LEVELS = {5: -6.15, 10: -16.35, 15: -24.48, 20: -32.2, 30: -np.inf, 50: -66.96}
 #: Unrelated tuning pairs of 10,000 that a size's two levels together let through in its worst cell, and
 #: the search's share of them. At 3 (the search's share 1) the held-out check merged 4-6 of 10,000 in six
@@ -447,7 +447,7 @@ def triangle_test(n_landmarks: int, statistic: str = "nfa"):
 
 def search_count_level(n_landmarks: int) -> float | None:
     """``SEARCH_COUNT_LEVELS``' log level for maps whose smaller holds ``n_landmarks`` landmarks; None above
-    ``max(SEARCH_COUNT_LEVELS)``, where the search keeps its own test alone."""
+    ``max(SEARCH_COUNT_LEVELS)``, where the search keeps its own test alone (as it does at a level of -inf)."""
     return _size_entry(SEARCH_COUNT_LEVELS, n_landmarks) if n_landmarks <= max(SEARCH_COUNT_LEVELS) else None
 
 
@@ -469,19 +469,21 @@ def search_count_nfa(P, Q, sigma, cov_p=None, cov_q=None, hulls=None, fallback=s
         ``search_batch``'s associations at ``nfa_level=np.inf``.
     nfa : (B,) ndarray
         The search's own NFA of each pair's best hypothesis.
-    count_nfa : (B,) ndarray
-        ``count_nfa_batch`` of its associations with one hypothesis, at their n-point fit (inf where
-        fewer than 3 landmarks associate).
+    log_count_nfa : (B,) ndarray
+        The log of ``count_nfa_batch`` of its associations with one hypothesis, at their n-point fit (inf
+        where fewer than 3 landmarks associate; -inf where the NFA underflows).
     """
     hulls = (MapHulls(P), MapHulls(Q)) if hulls is None else hulls
     trial, pairs, contested, nfa = fallback(P, Q, sigma, cov_p, cov_q, hulls, nfa_level=np.inf)
-    count_nfa = np.full(len(P), np.inf)
+    log_count_nfa = np.full(len(P), np.inf)
     active, local, kept, theta, t, _, cov = _fitted(P, Q, sigma, trial, pairs)
     if active.size:
-        count_nfa[active] = count_nfa_batch(P[active], Q[active], theta, t, cov, local, kept,
-                                            np.ones(active.size), sigma[active], covariance_rows(cov_p, active),
-                                            covariance_rows(cov_q, active), [hulls[0][b] for b in active])
-    return trial, pairs, contested, nfa, count_nfa
+        count_nfa = count_nfa_batch(P[active], Q[active], theta, t, cov, local, kept, np.ones(active.size),
+                                    sigma[active], covariance_rows(cov_p, active), covariance_rows(cov_q, active),
+                                    [hulls[0][b] for b in active])
+        with np.errstate(divide="ignore"):
+            log_count_nfa[active] = np.log(count_nfa)
+    return trial, pairs, contested, nfa, log_count_nfa
 
 
 def match_nfa(P, Q, alignment, pairs, n_hypotheses: int, sigma: float, *, cov_p=None, cov_q=None,
@@ -727,11 +729,11 @@ def consensus_merge(P, Q, sigma, match: TriangleMatch, log_tau, cov_p=None, cov_
         if unmatched.size:
             args = (P[unmatched], Q[unmatched], sigma[unmatched], covariance_rows(cov_p, unmatched),
                     covariance_rows(cov_q, unmatched), (hulls_p.take(unmatched), hulls_q.take(unmatched)))
-            if level is None:
+            if level is None or level == -np.inf:  # the search's own test alone: no count to take
                 found, more, more_contested, _ = fallback(*args)
             else:
-                found, more, more_contested, nfa, count_nfa = search_count_nfa(*args, fallback=fallback)
-                accepted = ((nfa <= SEARCH_NFA) | (np.log(count_nfa) <= level))[found]
+                found, more, more_contested, nfa, log_count_nfa = search_count_nfa(*args, fallback=fallback)
+                accepted = ((nfa <= SEARCH_NFA) | (log_count_nfa <= level))[found]
                 found, more, more_contested = found[accepted], more[accepted], more_contested[accepted]
             trial = np.concatenate([trial, unmatched[found]])
             order = np.argsort(trial, kind="stable")
