@@ -66,12 +66,12 @@ from .intervals import ratio_interval, wilson  # noqa: E402
 from .paper import run_module  # noqa: E402
 
 #: The sweeps of the experiment: each writes ``<out>/<preset>/table.csv``.
-PRESETS = ("compare", "compare_consensus", "compare_search", "compare_astroalign", "compare_peers", "compare_teaser",
-           "compare_association")
+PRESETS = ("compare", "compare_consensus", "compare_search", "compare_astroalign", "compare_cpd", "compare_clipper",
+           "compare_teaser", "compare_association")
 #: The optional modules each preset's methods need: without them the preset is skipped.
-PRESET_NEEDS = {"compare_astroalign": ("astroalign",), "compare_peers": ("pycpd", "clipperpy"),
+PRESET_NEEDS = {"compare_astroalign": ("astroalign",), "compare_cpd": ("pycpd",), "compare_clipper": ("clipperpy",),
                 "compare_teaser": ("teaserpp_python",)}
-#: The outside peers (``compare_peers``, ``compare_teaser``): drawn in ``peers.png`` rather than ``success.png``.
+#: The outside peers (``compare_cpd``, ``compare_clipper``, ``compare_teaser``): drawn in ``peers.png`` rather than ``success.png``.
 PEERS = ("cpd", "clipper", "teaser")
 #: Methods that return landmark pairs, not triangle pairs: no triangle counts.
 NO_TRIANGLES = ("astroalign", "search", *PEERS)

@@ -194,8 +194,8 @@ def test_compare_sweep_tables_and_figure_on_both_layouts(tmp_path):
     # A peer's sweep (here consensus's trials under a peer's name): no triangle counts, its own figure.
     peer = pd.read_csv(out / "compare" / "table.csv")
     peer = peer[peer.tau == "chi2:0.01"].assign(method="clipper", tau="none")
-    (out / "compare_peers").mkdir()
-    peer.to_csv(out / "compare_peers" / "table.csv", index=False)
+    (out / "compare_clipper").mkdir()
+    peer.to_csv(out / "compare_clipper" / "table.csv", index=False)
     made = {p.name for p in write_tables(out)}
     assert {"peers.png", "success.png"} <= made
     comp = pd.read_csv(out / "compare.csv")
@@ -274,7 +274,7 @@ def test_compare_skips_a_preset_whose_methods_are_not_installed(tmp_path, monkey
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "clipperpy" else find_spec(name))
     monkeypatch.setattr(compare, "run_module", lambda argv: ran.append(argv[2]))
     with pytest.raises(FileNotFoundError):  # nothing ran, so no table to build
-        compare.main(["--presets", "compare_peers,compare_search,compare_teaser", "--out", str(tmp_path)])
+        compare.main(["--presets", "compare_clipper,compare_search,compare_teaser", "--out", str(tmp_path)])
     expected = ["experiment=compare_search"]
     if find_spec("teaserpp_python") is not None:
         expected.append("experiment=compare_teaser")
