@@ -274,49 +274,57 @@ def acceptance_rows(n: int, layout: str, snr: float, seeds, unrelated: bool, sea
     return rows
 
 
-def merged_counts(n: int, layout: str, snr: float, related: int, holdout: int, method: str = "consensus",
-                  oracle: bool = False, holdout_seed: int = HOLDOUT_SEED) -> dict:
-    """``method`` under whatever acceptance is in force: false merges on ``holdout`` held-out unrelated pairs
-    (seeds ``holdout_seed``+k), found rate (with its interval) and wrong merges on ``related`` related pairs of
-    seeds 0+k, the pairs ``experiments.peers --equal-rate`` gives every peer; ``wrong_over_5_deg``: the wrong
-    merges whose rotation is over 5° off (the others are near misses of the found rule). With ``oracle``,
-    also ``oracle_found``, the related pairs whose fit on every true correspondence
-    (``metrics.correspondence_oracle_transform``) meets the found rule, and ``wrong_oracle_found``, the
-    wrong merges among them: the rest are pairs that no association could merge within the rule."""
-    counts = dict.fromkeys(("false_merges", "found", "wrong_merges", "wrong_over_5_deg", "oracle_found",
-                            "wrong_oracle_found"), 0)
-    for unrelated, base, count in ((True, holdout_seed, holdout), (False, 0, related)):
-        for start in range(0, count, BATCH):
-            seeds = [base + k for k in range(start, min(start + BATCH, count))]
-            sc = mm.simulate.make_pairs(n, 0.75, snr, seeds, unrelated=unrelated, layout=layout)
+def merged_counts(n: int, layout: str, snr: float, related: int, holdout: int, methods=("consensus",),
+                  oracle: bool = False, holdout_seed: int = HOLDOUT_SEED) -> list[dict]:
+    """Each of ``methods`` under whatever acceptance is in force, one dict per method: false merges on
+    ``holdout`` held-out unrelated pairs (seeds ``holdout_seed``+k; the first method only, the others get
+    none), found rate (with its interval) and wrong merges on ``related`` related pairs of seeds 0+k, the
+    pairs ``experiments.peers --equal-rate`` gives every peer; ``wrong_over_5_deg``: the wrong merges whose
+    rotation is over 5° off (the others are near misses of the found rule). With ``oracle``, also
+    ``oracle_found``, the related pairs whose fit on every true correspondence
+    (``metrics.correspondence_oracle_transform``, once per pair for all methods) meets the found rule, and
+    ``wrong_oracle_found``, the wrong merges among them: the rest are pairs that no association could merge
+    within the rule."""
+    counts = [dict.fromkeys(("false_merges", "found", "wrong_merges", "wrong_over_5_deg", "oracle_found",
+                             "wrong_oracle_found"), 0) for _ in methods]
+    for start in range(0, holdout, BATCH):
+        seeds = [holdout_seed + k for k in range(start, min(start + BATCH, holdout))]
+        sc = mm.simulate.make_pairs(n, 0.75, snr, seeds, unrelated=True, layout=layout)
+        counts[0]["false_merges"] += int(mm.merge_batch(sc.p, sc.q, sc.sigma, method=methods[0]).matched.sum())
+    for start in range(0, related, BATCH):
+        seeds = list(range(start, min(start + BATCH, related)))
+        sc = mm.simulate.make_pairs(n, 0.75, snr, seeds, unrelated=False, layout=layout)
+        if oracle:
+            fits = [mm.metrics.correspondence_oracle_transform(sc[b]) for b in range(len(seeds))]
+            reachable = np.array([mm.metrics.transform_found(sc[b], f.theta, f.t) for b, f in enumerate(fits)])
+        for method, c in zip(methods, counts):
             err = mm.metrics.map_errors_batch(sc, mm.merge_batch(sc.p, sc.q, sc.sigma, method=method))
-            if unrelated:
-                counts["false_merges"] += int(err["matched"].sum())
-                continue
-            counts["found"] += int((err["matched"] & err["transform_found"]).sum())
+            c["found"] += int((err["matched"] & err["transform_found"]).sum())
             wrong = err["matched"] & ~err["transform_found"]
-            counts["wrong_merges"] += int(wrong.sum())
-            counts["wrong_over_5_deg"] += int(np.sum(wrong & (np.abs(err["rot_err_deg"]) > 5)))
+            c["wrong_merges"] += int(wrong.sum())
+            c["wrong_over_5_deg"] += int(np.sum(wrong & (np.abs(err["rot_err_deg"]) > 5)))
             if oracle:
-                fits = [mm.metrics.correspondence_oracle_transform(sc[b]) for b in range(len(seeds))]
-                reachable = np.array([mm.metrics.transform_found(sc[b], f.theta, f.t) for b, f in enumerate(fits)])
-                counts["oracle_found"] += int(reachable.sum())
-                counts["wrong_oracle_found"] += int((wrong & reachable).sum())
-    lo, hi = wilson(counts["found"], related)
-    return {"holdout_seed": holdout_seed, "holdout_pairs": holdout, "false_merges": counts["false_merges"],
-            "false_upper": float(wilson(counts["false_merges"], holdout)[1]) if holdout else np.nan,
-            "related_pairs": related,
-            "found_rate": counts["found"] / related, "found_lo": float(lo), "found_hi": float(hi),
-            "wrong_merges": counts["wrong_merges"], "wrong_over_5_deg": counts["wrong_over_5_deg"],
-            **({"oracle_found": counts["oracle_found"], "wrong_oracle_found": counts["wrong_oracle_found"]}
-               if oracle else {})}
+                c["oracle_found"] += int(reachable.sum())
+                c["wrong_oracle_found"] += int((wrong & reachable).sum())
+    rows = []
+    for k, c in enumerate(counts):
+        lo, hi = wilson(c["found"], related)
+        pairs = holdout if k == 0 else 0
+        rows.append({"holdout_seed": holdout_seed, "holdout_pairs": pairs, "false_merges": c["false_merges"],
+                     "false_upper": float(wilson(c["false_merges"], pairs)[1]) if pairs else np.nan,
+                     "related_pairs": related,
+                     "found_rate": c["found"] / related, "found_lo": float(lo), "found_hi": float(hi),
+                     "wrong_merges": c["wrong_merges"], "wrong_over_5_deg": c["wrong_over_5_deg"],
+                     **({"oracle_found": c["oracle_found"], "wrong_oracle_found": c["wrong_oracle_found"]}
+                        if oracle else {})})
+    return rows
 
 
 def level_table(n: int, layout: str, snr: float, level: float, related: int, holdout: int) -> dict:
     """consensus with its triangle test accepting at NFA <= ``level`` (``merged_counts``)."""
     with triangle_acceptance(level):
         return {"n_landmarks": n, "layout": layout, "snr_db": snr, "match_nfa": level,
-                **merged_counts(n, layout, snr, related, holdout)}
+                **merged_counts(n, layout, snr, related, holdout)[0]}
 
 
 def count_table(n: int, layout: str, snr: float, related: int, holdout: int, equal_rate: pd.DataFrame,
@@ -325,12 +333,11 @@ def count_table(n: int, layout: str, snr: float, related: int, holdout: int, equ
     ``merged_counts`` with the oracle's columns, and consensus's found rate and wrong merges on the same
     related pairs, beside the best peer's at one false-merge rate; ``vs_consensus``, ``vs_peer``:
     ``verdict`` of consensus_count's found rate."""
+    counted, ours = merged_counts(n, layout, snr, related, holdout, ("consensus_count", "consensus"), oracle=True,
+                                  holdout_seed=holdout_seed)
     row = {"n_landmarks": n, "layout": layout, "snr_db": snr,
            "log_level": np.log(mm.consensus.triangle_test(n, "count")[1]),
-           "search_log_level": mm.consensus.search_count_level(n),
-           **merged_counts(n, layout, snr, related, holdout, "consensus_count", oracle=True,
-                           holdout_seed=holdout_seed)}
-    ours = merged_counts(n, layout, snr, related, 0, oracle=True)
+           "search_log_level": mm.consensus.search_count_level(n), **counted}
     row.update(consensus_found=ours["found_rate"], consensus_lo=ours["found_lo"], consensus_hi=ours["found_hi"],
                consensus_wrong=ours["wrong_merges"], consensus_wrong_over_5_deg=ours["wrong_over_5_deg"],
                consensus_wrong_oracle_found=ours["wrong_oracle_found"],
