@@ -411,11 +411,12 @@ def statistics_frames(n: int, layout: str, snr: float, tuning: int, related: int
 
 def cell_limit(log_count_nfa: np.ndarray, by_search: np.ndarray, allowed: int | None = None) -> float:
     """The log count NFA of the first tuning pair a cell must stop so that at most ``allowed`` (default
-    ``SIZE_ALLOWED``) of its tuning pairs merge, those merged already (``by_search``) spent first: -inf when
-    those alone are too many, inf when none need stopping."""
-    spare = (SIZE_ALLOWED if allowed is None else allowed) - int(by_search.sum())
+    ``SIZE_ALLOWED``) of its tuning pairs merge, those merged already (``by_search``) spent first: when those
+    alone are as many or more, the cell's first pair not merged already (it may add none); inf when none
+    need stopping."""
+    spare = max(0, (SIZE_ALLOWED if allowed is None else allowed) - int(by_search.sum()))
     ranked = np.sort(log_count_nfa[~by_search])
-    return -np.inf if spare < 0 else ranked[spare] if spare < len(ranked) else np.inf
+    return ranked[spare] if spare < len(ranked) else np.inf
 
 
 def level_below(limits) -> float:

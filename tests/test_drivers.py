@@ -212,8 +212,10 @@ def test_small_maps_count_levels_spend_the_search_merges_first(tmp_path, monkeyp
     # 30 dB stops -3 (-8 may merge); the level is just below the lower, and lets two through in each.
     assert table.cell_limit.tolist()[:2] == [-4.0, -3.0] and (table.log_level[:2] == -4.01).all()
     assert table.tuning_merges.tolist()[:2] == [2, 2]
-    # 20 landmarks: the search's own test spends the allowance at 20 dB and exceeds it at 30 dB, so no search
-    # level; at 20 dB the triangle test must stop its first pair, at 30 dB no level is allowed at all.
-    assert table.search_limit.tolist()[2:] == [-np.inf, -np.inf] and (table.search_log_level[2:] == -np.inf).all()
-    assert table.cell_limit.tolist()[2:] == [2.0, -np.inf] and (table.log_level[2:] == -np.inf).all()
+    # 20 landmarks: the search's own test exceeds its allowance in both cells, so its count may add none: at
+    # 20 dB it must stop its one pair left (0), at 30 dB it has none left. The triangle test likewise: at
+    # 20 dB it must stop its one pair left (2), and the search's two merges are all the cell lets through.
+    assert table.search_limit.tolist()[2:] == [0.0, np.inf] and (table.search_log_level[2:] == -0.01).all()
+    assert table.search_merges.tolist()[2:] == [2, 3]
+    assert table.cell_limit.tolist()[2:] == [2.0, np.inf] and (table.log_level[2:] == 1.99).all()
     assert table.tuning_merges.tolist()[2:] == [2, 3]
