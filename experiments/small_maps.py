@@ -462,8 +462,8 @@ def count_level_table(cells: dict) -> pd.DataFrame:
     tuning pairs in every cell of the size, its own test's merges spent first; then the triangle test's
     (``consensus.COUNT_LEVELS``): the loosest at which at most ``consensus.TUNING_ALLOWED`` tuning pairs merge
     in every cell, the search's merges at its level spent first. ``search_limit``, ``cell_limit``: the log
-    count NFA of the first tuning pair the cell must stop (-inf when the merges spent first are already too
-    many)."""
+    count NFA of the first tuning pair the cell must stop (``cell_limit``: where the merges spent first
+    already reach the allowance, its first pair not merged already)."""
     table = pd.DataFrame([{"n_landmarks": n, "layout": layout, "snr_db": snr, "tuning_pairs": len(null),
                            "search_test_merges": int(search.merged.sum()),
                            "search_limit": cell_limit(search.log_count_nfa.to_numpy(),
