@@ -296,7 +296,7 @@ def consensus_outcome(n: int, layout: str, snr: float, seed: int, unrelated: boo
     """
     sc = _pair(n, layout, snr, seed, unrelated)
     with recorded_tests() as seen:
-        err = mm.metrics.map_errors(sc, mm.merge_maps(sc.p, sc.q, sc.sigma))
+        err = mm.metrics.map_errors(sc, mm.merge_maps(sc.p, sc.q, sc.sigma, method="consensus"))
     tests = seen.get(sc.p.tobytes(), {})
     # inf, not NaN, for "no test made": pairs.csv drops NaN, so a NaN measure would be computed again on resume.
     tri_nfa, tri_hyp, tri_pairs, theta, t = tests.get("triangles", (np.inf, 0, 0, None, None))

@@ -169,7 +169,7 @@ def merge_outcome(n: int, snr: float, seed: int, unrelated: bool) -> tuple[bool,
     """(merged, transform found, rotation error in degrees, wrong landmark pairs) of consensus on one of the
     detector's strip-layout pairs (NaN and 0 when not merged)."""
     sc = detector._pair(n, "strip", snr, seed, unrelated)
-    err = mm.metrics.map_errors(sc, mm.merge_maps(sc.p, sc.q, sc.sigma))
+    err = mm.metrics.map_errors(sc, mm.merge_maps(sc.p, sc.q, sc.sigma, method="consensus"))
     return (bool(err["matched"]), bool(err["matched"] and not unrelated and err["transform_found"]),
             float(abs(err["rot_err_deg"])), int(err["wrong_pairs"]))
 
@@ -263,7 +263,7 @@ def acceptance_rows(n: int, layout: str, snr: float, seeds, unrelated: bool, sea
         chunk = [int(s) for s in seeds[start:start + BATCH]]
         sc = mm.simulate.make_pairs(n, 0.75, snr, chunk, unrelated=unrelated, layout=layout)
         with detector.recorded_tests(search) as seen:
-            merged = mm.merge_batch(sc.p, sc.q, sc.sigma).matched
+            merged = mm.merge_batch(sc.p, sc.q, sc.sigma, method="consensus").matched
         for b, seed in enumerate(chunk):
             tests = seen.get(sc.p[b].tobytes(), {})
             nfa, _, k, theta, t = tests.get("triangles", (np.inf, 0, 0, None, None))

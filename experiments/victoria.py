@@ -3,7 +3,7 @@
     python -m experiments.victoria            # run the preset, then table and figure
     python -m experiments.victoria --tables   # only rebuild them from the last run
 
-Runs ``experiment=victoria_park`` (6 cut points x 2 map sources x 5 methods;
+Runs ``experiment=victoria_park`` (6 cut points x 2 map sources x 6 methods;
 the ``slam`` source is skipped when GTSAM is not installed, ``astroalign``
 when astroalign is not) and writes ``table.csv`` / ``table.md``: trees per
 agent, common trees, correspondences found (correct / wrong), rotation and
@@ -11,9 +11,10 @@ translation error, combined-map RMSE against the reference tree map, and
 time per merge; ``victoria_park.png`` / ``.pdf``: both agents' maps, the
 merged map and the reference trees at the default cut; and, with the slam
 source, ``solver_check.md``: the same SLAM solver on the whole drive against
-the reference tree map; and ``min_sightings.md``: ``consensus`` on the
+the reference tree map; and ``min_sightings.md``: the default method
+(``consensus_count``: ``consensus`` on maps of more than 50 trees) on the
 SLAM maps when each agent publishes only the trees it sighted at least
-1, 2 or 3 times; and ``rigidity.md``: per cut and source, ``consensus``
+1, 2 or 3 times; and ``rigidity.md``: per cut and source, the default method
 followed by ``residual_match`` on the trees it left unpaired (a second
 significant rigid match: one agent's map is bent).
 """
@@ -50,6 +51,9 @@ SWEEP = Path("outputs/sweeps/victoria_park")
 #: have split it from a nearby tree's track (48 of the 151 ids): wrong pairs
 #: involving such a tree are counted apart, as their ground truth is weak.
 FEW_SIGHTINGS = 2
+#: The two consensus methods (the default, ``consensus_count``, differs on maps of at most 50 trees): run
+#: with and without the agents' covariances.
+CONSENSUS_METHODS = ("consensus", "consensus_count")
 COLUMNS = {
     "cut": "cut", "source": "source", "method": "method", "use_cov": "covariances", "n_p": "trees p",
     "n_q": "trees q", "n_common_landmarks": "common", "map_rmse_p": "map RMSE p (m)", "map_rmse_q": "map RMSE q (m)",
@@ -144,9 +148,9 @@ def own_fit_error(merged: pd.DataFrame, pair, theta: float) -> float:
 
 
 def table(trials: pd.DataFrame, examples: pd.DataFrame) -> pd.DataFrame:
-    # Covariances change consensus's gates and every method's fusion; runs of the
+    # Covariances change the consensus methods' gates and every method's fusion; runs of the
     # other methods with them differ only in the fused positions.
-    trials = trials[~trials.use_cov | (trials.method == "consensus")].copy()
+    trials = trials[~trials.use_cov | trials.method.isin(CONSENSUS_METHODS)].copy()
     trials["ms"] = 1e3 * (trials.time_match_s + trials.time_merge_s)
     for (cut, source), rows in trials.groupby(["cut", "source"]):
         q, pair = quality(int(cut), source)
@@ -201,7 +205,7 @@ def figure(examples: pd.DataFrame, out: Path, cut: int = DEFAULT_CUT, method: st
 
 
 def bent_figure(out: Path, cut: int = 5500) -> list[Path]:
-    """A bent late map: ``consensus``'s merge and the second rigid match ``residual_match`` finds among the
+    """A bent late map: the default method's merge and the second rigid match ``residual_match`` finds among the
     trees it left unpaired, on the reference trees (slam source, with the agents' covariances)."""
     _, pair = quality(cut, "slam")
     cov = {"cov_p": pair.cov_p, "cov_q": pair.cov_q}
@@ -239,7 +243,7 @@ CONFIRMATION_SIGHTINGS = (1, 2, 3)
 
 
 def confirmation_table() -> pd.DataFrame:
-    """``consensus`` on the SLAM maps when each agent publishes only trees it sighted at least k times."""
+    """The default method on the SLAM maps when each agent publishes only trees it sighted at least k times."""
     rows = []
     for cut in SLAM_CUTS:
         for k in CONFIRMATION_SIGHTINGS:
@@ -264,7 +268,7 @@ def confirmation_table() -> pd.DataFrame:
 
 
 def rigidity_table(sources) -> pd.DataFrame:
-    """``consensus`` (with the agents' covariances on the slam source), then ``residual_match`` on the
+    """The default method (with the agents' covariances on the slam source), then ``residual_match`` on the
     trees it left unpaired: a second significant rigid match says, from the maps alone, that one map is bent."""
     rows = []
     for source in sources:
@@ -340,7 +344,7 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     if not args.tables:
         sources = ["reference"] + (["slam"] if importlib.util.find_spec("gtsam") else [])
-        methods = ["paper", "cyclic", "consensus", "groth"]
+        methods = ["paper", "cyclic", *CONSENSUS_METHODS, "groth"]
         methods += ["astroalign"] if importlib.util.find_spec("astroalign") else []
         run_module(["experiments.run", "-m", "experiment=victoria_park", "mc.progress=false",
                f"scenario.source={','.join(sources)}", f"matcher.method={','.join(methods)}",

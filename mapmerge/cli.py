@@ -6,7 +6,7 @@
     python -m mapmerge merge ...
 
 Reads the maps (``mapmerge.mapfiles``), runs ``merge_maps`` on two
-(method ``consensus`` unless ``--method`` says otherwise) and writes the
+(method ``consensus_count`` unless ``--method`` says otherwise) and writes the
 combined map in map A's frame; three or more go to ``merge_many`` (every
 pair merged, cycles checked, one joint solution) and the fused map is
 written in the frame of the first map placed. After a match it looks for a second rigid match among the
@@ -40,7 +40,7 @@ from . import __version__
 from ._validation import check_points
 from .group import INCONSISTENT, merge_many
 from .mapfiles import LandmarkMap, MapFileError, read_map, write_group, write_map
-from .merging import (DEFAULT_TAU, METHODS, UNTESTED_METHODS, merge_maps, pooled_sigma, residual_match,
+from .merging import (DEFAULT_METHOD, DEFAULT_TAU, METHODS, UNTESTED_METHODS, merge_maps, pooled_sigma, residual_match,
                       rigid_check)
 
 #: Exit statuses: one meaning each.
@@ -73,8 +73,8 @@ def _parser() -> argparse.ArgumentParser:
     merge.add_argument("--sigma", type=float, default=None,
                        help="per-coordinate standard deviation of a landmark, in map units; needed unless both "
                             "maps give covariances, whose RMS per-coordinate standard deviation is then used")
-    merge.add_argument("--method", default="consensus", choices=list(METHODS), metavar="METHOD",
-                       help="matcher, default consensus: " + "; ".join(f"{m.name}: {m.summary}"
+    merge.add_argument("--method", default=DEFAULT_METHOD, choices=list(METHODS), metavar="METHOD",
+                       help=f"matcher, default {DEFAULT_METHOD}: " + "; ".join(f"{m.name}: {m.summary}"
                                                                    for m in METHODS.values()))
     merge.add_argument("--tau", default=DEFAULT_TAU, help=f"threshold: chi2:P or a log-LR (default {DEFAULT_TAU})")
     merge.add_argument("-o", "--output", required=True, help="combined map file to write (.csv or .tsv)")

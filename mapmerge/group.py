@@ -60,7 +60,7 @@ from scipy.special import chdtri
 from ._validation import check_covariances, check_points, check_rng, check_sigma
 from .alignment import ROT90, covariance_in_p_frame, mapped_covariance, rotate, rotation, wrap_angle
 from .matching import resolve_log_tau
-from .merging import DEFAULT_TAU, get_method, merge_maps
+from .merging import DEFAULT_METHOD, DEFAULT_TAU, get_method, merge_maps
 
 #: Tail probability of the χ²₃ test a cycle of edges must pass: a cycle of
 #: correct edges is refused this often (with correct covariances).
@@ -162,7 +162,7 @@ class GroupMerge:
         return {s: sum(e.status == s for e in self.edges) for s in (ACCEPTED, INCONSISTENT, NO_MATCH)}
 
 
-def merge_many(maps, sigma=None, covs=None, *, method: str = "consensus", tau=DEFAULT_TAU, reference: int = 0,
+def merge_many(maps, sigma=None, covs=None, *, method: str = DEFAULT_METHOD, tau=DEFAULT_TAU, reference: int = 0,
                placement: str = "joint", candidates=None, n_jobs: int = 1, rng=None) -> GroupMerge:
     """Merge N landmark maps into one map in the frame of one of them.
 
@@ -290,7 +290,7 @@ def candidate_pairs(maps, sigmas, candidates=None) -> np.ndarray:
     return np.unique(np.sort(chosen, axis=1), axis=0)
 
 
-def pairwise_edges(maps, sigmas, covs, pairs, *, method="consensus", tau=DEFAULT_TAU, n_jobs=1, rng=None,
+def pairwise_edges(maps, sigmas, covs, pairs, *, method=DEFAULT_METHOD, tau=DEFAULT_TAU, n_jobs=1, rng=None,
                    sigma_given=True) -> list:
     """``merge_maps`` of every listed pair of (valid) maps, as edges ("accepted" or "no match").
 

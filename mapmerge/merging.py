@@ -144,10 +144,10 @@ METHODS = {m.name: m for m in (
     Method("paper", "the seed paper: Groth order, GLRT, LP (14), τ, eq. (15)"),
     Method("cyclic", "the paper with the order-robust statistic (best cyclic vertex order)", cyclic=True),
     Method("consensus", "order-robust statistic + transform-consistent verification, landmark association "
-           "and an a contrario acceptance test, the global search when triangles find nothing (use this)",
+           "and an a contrario acceptance test, the global search when triangles find nothing",
            cyclic=True, solve_lp=False, merge=_consensus_merge),
-    Method("consensus_count", "consensus whose triangle test ranks small maps' matches (up to 50 landmarks) by "
-           "their association count: more found on 10-20 landmarks at the same false-merge rate",
+    Method("consensus_count", "consensus whose tests rank small maps' matches (up to 50 landmarks) by their "
+           "association count: more found on 5-50 landmarks at the same false-merge rate (the default: use this)",
            cyclic=True, solve_lp=False, merge=functools.partial(_consensus_merge, statistic="count")),
     Method("search", "global (θ, t) search with an a contrario acceptance test, no triangles (low SNR)",
            uses_tau=False, merge=_search_merge),
@@ -165,6 +165,10 @@ METHODS = {m.name: m for m in (
 
 #: Default threshold: reject 1 % of true, order-consistent triangle pairs.
 DEFAULT_TAU = "chi2:0.01"
+
+#: Default method of ``merge_maps``, ``merge_batch``, ``merge_many`` and ``mapmerge merge``: ``consensus`` on
+#: maps of more than 50 landmarks, and on smaller ones the test that finds more of them at the same rate.
+DEFAULT_METHOD = "consensus_count"
 
 
 def get_method(method) -> Method:
@@ -204,8 +208,8 @@ def merge_at(P: np.ndarray, Q: np.ndarray, sigma: np.ndarray, match: TriangleMat
     return batch if cov_p is None else batch.with_covariances(cov_p, cov_q)
 
 
-def merge_batch(P, Q, sigma, *, tau=DEFAULT_TAU, method="consensus", objective="lr", cov_p=None, cov_q=None,
-                rng=None) -> MergeBatch:
+def merge_batch(P, Q, sigma, *, tau=DEFAULT_TAU, method=DEFAULT_METHOD, objective="lr", cov_p=None,
+                cov_q=None, rng=None) -> MergeBatch:
     """``merge_maps`` on B map pairs of equal sizes at once.
 
     Parameters
@@ -273,8 +277,8 @@ def pooled_sigma(cov_p, cov_q) -> float:
                                                  np.trace(cov_q, axis1=1, axis2=2)]) / 2)))
 
 
-def merge_maps(P, Q, sigma=None, *, tau=DEFAULT_TAU, method="consensus", objective="lr", cov_p=None, cov_q=None,
-               rng=None) -> MergeResult:
+def merge_maps(P, Q, sigma=None, *, tau=DEFAULT_TAU, method=DEFAULT_METHOD, objective="lr", cov_p=None,
+               cov_q=None, rng=None) -> MergeResult:
     """Match two landmark maps and build their maximum-likelihood combination.
 
     Parameters
@@ -295,11 +299,15 @@ def merge_maps(P, Q, sigma=None, *, tau=DEFAULT_TAU, method="consensus", objecti
     tau : float or str, default ``"chi2:0.01"``
         Threshold: a log-LR value, or ``"chi2:P"`` for the χ²₃ rule
         ``log τ = -½ χ²₃⁻¹(1 - P)``.
-    method : str, default ``"consensus"``
-        A name in ``METHODS``. ``"consensus"`` is the one to use on real
-        maps: it verifies that the matched triangles agree on one rigid
-        motion, associates every landmark and refuses matches chance could
-        explain. ``"paper"`` is the seed paper's method as published.
+    method : str, default ``"consensus_count"``
+        A name in ``METHODS``. ``"consensus_count"`` (the default) or
+        ``"consensus"`` is the one to use on real maps: it verifies that the
+        matched triangles agree on one rigid motion, associates every
+        landmark and refuses matches chance could explain. The two are the
+        same on maps of more than 50 landmarks; on smaller ones
+        ``consensus_count`` accepts by the number of associations, at
+        levels set for a false-merge rate of at most 1e-3 per map pair, and
+        finds more. ``"paper"`` is the seed paper's method as published.
     objective : {"lr", "loglr"}
         LP objective: Σ Λ as in the paper, or Σ log Λ.
     cov_p, cov_q : (n, 2, 2) or (n,) array_like, optional

@@ -156,7 +156,7 @@ def test_python_dash_m_runs_the_same_command(tmp_path):
     out = tmp_path / "m.csv"
     proc = subprocess.run([sys.executable, "-m", "mapmerge", "merge", str(a), str(b), "--sigma", "0.02",
                            "-o", str(out)], capture_output=True, text=True)
-    assert proc.returncode == 0 and "matched (consensus)" in proc.stdout and out.exists()
+    assert proc.returncode == 0 and "matched (consensus_count)" in proc.stdout and out.exists()
 
 
 def test_sigma_comes_from_the_maps_covariances_when_left_out(tmp_path, capsys):

@@ -134,12 +134,12 @@ def test_match_level_is_looser_on_smaller_maps():
 
 
 def test_ten_landmark_maps_at_20_db_merge_at_their_level_without_false_merges(monkeypatch):
-    """A small version of the small-map target: the looser level finds more, and chance still passes rarely."""
+    """consensus's looser level on small maps finds more, and chance still passes rarely."""
     from mapmerge import consensus
 
     def found(seeds, unrelated):
         sc = mm.simulate.make_pairs(10, 0.75, 20.0, seeds, unrelated=unrelated)
-        err = metrics.map_errors_batch(sc, mm.merge_batch(sc.p, sc.q, sc.sigma))
+        err = metrics.map_errors_batch(sc, mm.merge_batch(sc.p, sc.q, sc.sigma, method="consensus"))
         return int(err["matched"].sum()) if unrelated else int((err["matched"] & err["transform_found"]).sum())
 
     assert found(range(600_000, 600_300), unrelated=True) == 0
@@ -180,9 +180,9 @@ def test_triangle_test_counts_on_small_maps_only():
 
 
 def test_consensus_count_finds_more_on_ten_landmark_maps_and_is_consensus_on_large_ones():
-    """A small version of the small-map target: on 10 landmarks at 20 dB consensus_count finds more related
-    pairs than consensus with no false merge among held-out unrelated ones; beyond ``COUNT_LEVELS`` it is
-    consensus, bit for bit."""
+    """A small version of the small-map target: on 10 landmarks at 20 dB consensus_count (the default) finds
+    more related pairs than consensus with no false merge among held-out unrelated ones; beyond
+    ``COUNT_LEVELS`` it is consensus, bit for bit."""
     def merges(n, seeds, unrelated, method):
         sc = mm.simulate.make_pairs(n, 0.75, 20.0, seeds, unrelated=unrelated)
         return sc, mm.merge_batch(sc.p, sc.q, sc.sigma, method=method)
@@ -194,6 +194,9 @@ def test_consensus_count_finds_more_on_ten_landmark_maps_and_is_consensus_on_lar
 
     assert found(range(600_000, 600_300), True, "consensus_count") == 0
     assert found(range(100), False, "consensus_count") >= found(range(100), False, "consensus") + 5
+    sc, count = merges(10, range(20), False, "consensus_count")
+    default = mm.merge_batch(sc.p, sc.q, sc.sigma)  # the default method
+    assert default.method == "consensus_count" and np.array_equal(default.pairs, count.pairs)
     seeds = [0, 1, 600_000]
     (_, ours), (_, count) = (merges(60, seeds, False, m) for m in ("consensus", "consensus_count"))
     assert count.method == "consensus_count" and (count.matched == ours.matched).all()
