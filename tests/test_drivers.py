@@ -181,6 +181,17 @@ def test_small_maps_count_check_runs_consensus_count_beside_consensus_and_the_pe
     assert (shipped["found_rate"], shipped["wrong_merges"]) == (row["consensus_found"], row["consensus_wrong"])
 
 
+def test_small_maps_oracle_count_accepts_the_true_transform_where_it_is_plain_and_rarely_where_not():
+    """At 20 landmarks and 30 dB the count test accepts the association at the true transform on every pair,
+    as consensus_count finds them; at 10 landmarks and 15 dB on few."""
+    from experiments import small_maps
+
+    plain = small_maps.oracle_count_table(20, "strip", 30.0, 10)
+    assert plain["found_rate"] == plain["oracle_accepted_rate"] == 1.0 and plain["search_log_level"] < -30
+    hard = small_maps.oracle_count_table(10, "strip", 15.0, 30)
+    assert hard["oracle_accepted_rate"] <= 0.5 and hard["found_rate"] <= 0.5
+
+
 def test_small_maps_count_levels_spend_the_search_merges_first(tmp_path, monkeypatch):
     from experiments import small_maps
     from mapmerge import consensus
