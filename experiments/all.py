@@ -165,6 +165,9 @@ STEPS: tuple[Step, ...] = (
     # on seeds 600000+ and 700000+.
     _small_maps("small_count", *COUNT_CELLS, "--checks", "count", "--related", "1000", "--pairs", "10000",
                 "--holdout-seed", "800000"),
+    # The count test at the true transform beside consensus_count's finds: where its remaining power goes.
+    _small_maps("small_oracle_count", "--landmarks", "10", "20", "--layouts", "strip", "interleaved", "--snrs", "15",
+                "20", "25", "--checks", "oracle_count", "--related", "1000"),
     # consensus beside the best peer at one false-merge rate and the detector, per small-map cell.
     Step("small_reference", ("experiments.small_maps", "--checks", "reference", "--out", SMALL), (SMALL,)),
     Step("docs", ("experiments.docs",), ()),
