@@ -22,9 +22,10 @@ between unrelated triangles do not. ``consensus_merge``:
    ``mapmerge.exhaustive`` (EM, which wrong pairs bias far less than a fit
    over hard pairs) and associates there once more, and accepts the match
    only if chance would rarely produce one as good (``match_nfa``, an a
-   contrario test; the ``consensus_count`` variant ranks small maps' matches
-   by their association count, ``count_nfa_batch``, at levels set per map
-   size on unrelated tuning pairs);
+   contrario test; the ``consensus_count`` variant, the library's default,
+   ranks small maps' matches by their association count,
+   ``count_nfa_batch``, at levels set per map size on unrelated tuning
+   pairs);
 4. declares every triangle pair whose three landmarks are associated and
    not contested (``association.declared_triangles_batch``), and fuses every
    association, so common landmarks appear once in the combined map.
