@@ -40,8 +40,9 @@ others, such as Fig. 3's 10 and 20):
    (``mapmerge.metrics.transform_found``); ``ml_accurate_rate`` counts the
    pairs whose ML transform is within 1° and σ whatever the statistic (no
    threshold at all, so no false-merge guarantee: an upper reference);
-3. on the same pairs, ``consensus`` (``mapmerge.merge_maps`` with its
-   defaults and the same σ, but not the layout's prior): its two acceptance
+3. on the same pairs, ``consensus`` (``mapmerge.merge_maps`` with
+   ``method="consensus"``, its other defaults and the same σ, but not the
+   layout's prior): its two acceptance
    tests' statistics (``consensus_outcome``; the table ``stages``: where its
    power goes, and what each test's statistic would find at its own
    empirical null quantile), whether it merged,

@@ -40,8 +40,8 @@ Checks beside ``experiments.detector``'s tables (``stages``), chosen with
    related pairs (seeds 100000+k): the evidence for ``consensus.MATCH_NFA``
    (and the passes at the level it gives the cell's size).
    On maps of at most ``HOLDOUT_MAX_LANDMARKS`` landmarks it also merges
-   ``--pairs`` held-out unrelated pairs (seeds 600000+k) with the defaults,
-   search included: the false merges of the rule as shipped;
+   ``--pairs`` held-out unrelated pairs (seeds 600000+k) with ``consensus``
+   as shipped, search included: the false merges of its rule;
 5. ``levels``: consensus as shipped (the search included) but with its
    triangle test accepting at each of ``--levels`` in turn (what-if runs
    of ``consensus.MATCH_NFA``): false merges on ``--pairs`` held-out
@@ -153,7 +153,8 @@ def bound_table(n: int, snr: float, pairs: int) -> dict:
 
 
 def holdout_table(n: int, snr: float, pairs: int, stages: pd.DataFrame, out: Path) -> dict:
-    """Null passes of the defaults and of ``stages``' thresholds on held-out unrelated pairs (strip layout)."""
+    """Null passes of ``consensus`` as shipped and of ``stages``' thresholds on held-out unrelated pairs (strip
+    layout)."""
     path = out / f"holdout_{n}_{snr:g}_{code_digest(detector.__file__)[:12]}.csv"
     rows = pd.read_csv(path) if path.is_file() else None
     if rows is None or len(rows) != pairs:
@@ -404,7 +405,7 @@ def kept_rows(check: str, n: int, layout: str, snr: float, sets, make=acceptance
 
 def acceptance_table(n: int, layout: str, snr: float, tuning: int, related: int, holdout: int) -> dict:
     """The triangle test's passes at each of ``NFA_LEVELS`` on unrelated tuning pairs and its found rate on
-    related pairs, alone; the default rule's false merges on held-out unrelated pairs (maps of at most
+    related pairs, alone; consensus's shipped rule's false merges on held-out unrelated pairs (maps of at most
     ``HOLDOUT_MAX_LANDMARKS`` landmarks)."""
     holdout = holdout if n <= HOLDOUT_MAX_LANDMARKS else 0
     null, rel, hold = kept_rows("acceptance", n, layout, snr, (
