@@ -168,7 +168,9 @@ STEPS: tuple[Step, ...] = (
     # The count test at the true transform beside consensus_count's finds: where its remaining power goes.
     _small_maps("small_oracle_count", "--landmarks", "10", "20", "--layouts", "strip", "interleaved", "--snrs", "15",
                 "20", "25", "--checks", "oracle_count", "--related", "1000"),
-    # consensus beside the best peer at one false-merge rate and the detector, per small-map cell.
+    # Each peer with one bound per small-map size, as consensus_count has one level per size (10-40 dB).
+    Step("peers_one_bound", ("experiments.peers", "--one-bound"), ("results/peers",), ("pycpd",)),
+    # consensus and consensus_count beside the best peer (per cell and with one bound per size) and the detector.
     Step("small_reference", ("experiments.small_maps", "--checks", "reference", "--out", SMALL), (SMALL,)),
     Step("docs", ("experiments.docs",), ()),
 )

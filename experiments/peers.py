@@ -147,6 +147,10 @@ EQUAL_RATE_SLOW = {("cpd", 10): 500, ("cpd", 20): 500, ("cpd", 100): 0, ("clippe
 NOT_RUN = {("astroalign", 100): "not run: 0.35-5 s a merge",
            ("teaser", 100): "not run: its exact maximum clique takes seconds to minutes a merge here",
            ("cpd", 100): "not run: 0.6-1.2 s a merge, about an hour for a cell's 3,000 merges"}
+#: ``--one-bound``: the small-map cells (both layouts, 10 dB included) over which each peer gets one bound per
+#: map size, as ``consensus_count`` has one level per size: the largest of its cell bounds at that size.
+ONE_BOUND_CELLS = [(layout, n, snr) for layout in ("strip", "interleaved") for n in (10, 20)
+                   for snr in (10, 15, 20, 25, 30, 35, 40)]
 #: Pairs per job of ``--equal-rate`` (its unit of parallelism and of resumption).
 EQUAL_RATE_CHUNK = 100
 #: Where ``--equal-rate`` keeps each chunk's per-pair outcomes (not committed).
@@ -566,6 +570,14 @@ def equal_rate_jobs(methods, pairs: int, cells) -> list[tuple]:
     return jobs
 
 
+def tuned_bound(inliers) -> int:
+    """The least inlier count that lets at most a share ``EQUAL_RATE`` of the tuning pairs' ``inliers``
+    through (and never below ``result.MIN_MATCHED_LANDMARKS``)."""
+    top = np.sort(np.asarray(inliers))[::-1]
+    allowed = int(np.floor(EQUAL_RATE * len(top)))
+    return max(MIN_MATCHED_LANDMARKS, int(top[allowed]) + 1 if allowed < len(top) else 0)
+
+
 def equal_rate_table(rows: pd.DataFrame, oracle: dict) -> pd.DataFrame:
     """Per cell and method: the found rate, wrong and false merges at the cell's bound (a peer's: the least
     inlier count that lets at most ``EQUAL_RATE`` of its tuning pairs through), and a peer's at its shipped
@@ -575,9 +587,7 @@ def equal_rate_table(rows: pd.DataFrame, oracle: dict) -> pd.DataFrame:
         rel, unrel, tune = (cell[cell.kind == kind] for kind in ("related", "unrelated", "tuning"))
         row = {"layout": layout, "n_landmarks": n, "snr_db": snr, "method": method, "pairs": len(rel)}
         if method in PEER_BOUNDS:
-            top = np.sort(tune["pairs"].to_numpy())[::-1]
-            allowed = int(np.floor(EQUAL_RATE * len(top)))
-            bound = max(MIN_MATCHED_LANDMARKS, int(top[allowed]) + 1 if allowed < len(top) else 0)
+            bound = tuned_bound(tune["pairs"])
             shipped = max(MIN_MATCHED_LANDMARKS, min_inliers(getattr(*PEER_BOUNDS[method]), n, n))
             row.update(tuning_pairs=len(tune), bound=bound, shipped_bound=shipped,
                        shipped_found=int((rel.found & (rel["pairs"] >= shipped)).sum()),
@@ -595,29 +605,112 @@ def equal_rate_table(rows: pd.DataFrame, oracle: dict) -> pd.DataFrame:
     return df.merge(detector_limits(), on=["layout", "n_landmarks", "snr_db"], how="left")
 
 
+def chunk_rows(pool, jobs, methods) -> pd.DataFrame:
+    """Every chunk of ``jobs`` (``outcome_chunk``, on ``pool``), labelled with its method, cell and kind."""
+    frames = []
+    for k, (job, rows) in enumerate(zip(jobs, pool.imap(outcome_chunk, jobs))):
+        frames.append(rows.assign(method=job[0], layout=job[1], n_landmarks=job[2], snr_db=float(job[3]),
+                                  kind=job[4]))
+        print(f"{k + 1}/{len(jobs)} {job[:5]} seeds {job[5]}+{job[6]}", flush=True)
+    rows = pd.concat(frames, ignore_index=True)
+    rows["method"] = pd.Categorical(rows["method"], methods)
+    return rows
+
+
 def equal_rate(out: Path, processes: int = 2, methods=None, pairs: int = EQUAL_RATE_PAIRS,
                landmarks=None) -> pd.DataFrame:
     """consensus and the installed peers at one false-merge rate per cell (module docstring), on the cells of
     maps of ``landmarks`` landmarks when given; writes equal_rate.csv / .md."""
     methods = [m for m in (methods or available_methods()) if m == "consensus" or m in PEER_BOUNDS]
     cells = equal_rate_cells(landmarks)
-    jobs = equal_rate_jobs(methods, pairs, cells)
-    frames = []
     with Pool(processes) as pool:
-        for k, (job, rows) in enumerate(zip(jobs, pool.imap(outcome_chunk, jobs))):
-            frames.append(rows.assign(method=job[0], layout=job[1], n_landmarks=job[2], snr_db=float(job[3]),
-                                      kind=job[4]))
-            print(f"{k + 1}/{len(jobs)} {job[:5]} seeds {job[5]}+{job[6]}", flush=True)
+        rows = chunk_rows(pool, equal_rate_jobs(methods, pairs, cells), methods)
         found = pool.starmap(oracle_found, [(*cell, pairs) for cell in cells])
     oracle = {(layout, n, float(snr)): k / pairs for (layout, n, snr), k in zip(cells, found)}
-    rows = pd.concat(frames, ignore_index=True)
-    rows["method"] = pd.Categorical(rows["method"], methods)
     df = equal_rate_table(rows, oracle)
     out.mkdir(parents=True, exist_ok=True)
     df.to_csv(out / "equal_rate.csv", index=False, float_format="%.4g")
     write_equal_rate(df, out / "equal_rate.md", pairs)
     equal_rate_figure(df, out)
     return df
+
+
+def one_bound_table(rows: pd.DataFrame) -> pd.DataFrame:
+    """Per peer and cell of ``rows`` (``chunk_rows``): the found rate, wrong and false merges at its one bound
+    per map size (the largest of its cell bounds at that size, ``bound_cell`` the cell that sets it), and at
+    its bound in the cell (``cell_*``)."""
+    keys = ["method", "layout", "n_landmarks", "snr_db"]
+    cells = {key: cell for key, cell in rows.groupby(keys, observed=True)}
+    cell_bound = {key: tuned_bound(cell[cell.kind == "tuning"]["pairs"]) for key, cell in cells.items()}
+    one = {}
+    for (method, layout, n, snr), bound in cell_bound.items():
+        if bound > one.get((method, n), (0,))[0]:
+            one[method, n] = (bound, f"{layout} {snr:g} dB")
+    out = []
+    for key, cell in cells.items():
+        method, layout, n, snr = key
+        rel, unrel = cell[cell.kind == "related"], cell[cell.kind == "unrelated"]
+        row = dict(zip(keys, key), pairs=len(rel), bound=one[method, n][0], bound_cell=one[method, n][1],
+                   cell_bound=cell_bound[key])
+        for prefix, bound in (("", row["bound"]), ("cell_", row["cell_bound"])):
+            accepted = rel["pairs"] >= bound
+            found = int((accepted & rel.found).sum())
+            lo, hi = wilson(found, len(rel))
+            row.update({f"{prefix}found_rate": found / len(rel), f"{prefix}found_lo": float(lo),
+                        f"{prefix}found_hi": float(hi), f"{prefix}wrong_merges": int((accepted & ~rel.found).sum()),
+                        f"{prefix}false_merges": int((unrel["pairs"] >= bound).sum())})
+        out.append(row)
+    return pd.DataFrame(out)
+
+
+def one_bound(out: Path, processes: int = 2, methods=None, pairs: int = EQUAL_RATE_PAIRS,
+              landmarks=None) -> pd.DataFrame:
+    """The installed peers (or ``methods``) with one bound per map size on ``ONE_BOUND_CELLS`` (those of maps
+    of ``landmarks`` landmarks when given; module docstring); writes one_bound.csv / .md, keeping the rows of
+    peers and sizes not run."""
+    methods = [m for m in (methods or available_methods()) if m in PEER_BOUNDS]
+    if not methods:
+        raise SystemExit("--one-bound: no peer installed (pip install 'mapmerge[peers]'; tools/build_peers.sh)")
+    cells = [cell for cell in ONE_BOUND_CELLS if landmarks is None or cell[1] in landmarks]
+    with Pool(processes) as pool:
+        df = one_bound_table(chunk_rows(pool, equal_rate_jobs(methods, pairs, cells), methods))
+    path = out / "one_bound.csv"
+    if path.is_file():
+        old = pd.read_csv(path)
+        rerun = old.set_index(["method", "n_landmarks"]).index.isin(df.set_index(["method", "n_landmarks"]).index)
+        df = pd.concat([old[~rerun], df], ignore_index=True)
+    df = df.sort_values(["n_landmarks", "layout", "snr_db", "method"], ignore_index=True)
+    out.mkdir(parents=True, exist_ok=True)
+    df.to_csv(path, index=False, float_format="%.4g")
+    write_one_bound(df, out / "one_bound.md")
+    return df
+
+
+def write_one_bound(df: pd.DataFrame, path: Path) -> None:
+    """one_bound.md: one row per cell, one column per peer."""
+    methods = list(dict.fromkeys(df["method"]))
+    bounds = df.drop_duplicates(["method", "n_landmarks"])
+    lines = [(f"Each peer with one acceptance bound per map size, as `consensus_count` has one level per size: "
+              f"the largest of its bounds in the cells of that size (each the least inlier count that lets at most "
+              f"{EQUAL_RATE:g} of the cell's {EQUAL_RATE_TUNING:,} unrelated tuning pairs through, seeds "
+              f"{CALIBRATION_SEED:,} + i), so that it holds whatever the SNR and layout of a user's maps. "
+              f"Transform found on related pairs, % [95 % Wilson interval] (pairs), wrong merges, false merges on "
+              f"as many unrelated pairs (seeds 0, 1, ...); after them, the same at the peer's bound in the cell "
+              f"(results/peers/equal_rate.md, which knows the cell's SNR)."), "",
+             "One bound per size: " + "; ".join(f"{r.method} at {r.n_landmarks} landmarks: {r.bound} inliers "
+                                                 f"(set by {r.bound_cell})" for r in bounds.itertuples()), "",
+             "| layout, n, SNR | " + " | ".join(methods) + " |", "|---|" + "---|" * len(methods)]
+    for (n, layout, snr), cell in df.groupby(["n_landmarks", "layout", "snr_db"], sort=False):
+        by = cell.set_index("method")
+        parts = [_one_bound_cell(by.loc[m]) if m in by.index else "not run" for m in methods]
+        lines.append(f"| {layout}, {n}, {snr:g} dB | " + " | ".join(parts) + " |")
+    path.write_text("\n".join(lines) + "\n")
+
+
+def _one_bound_cell(r: pd.Series) -> str:
+    return (f"{100 * r.found_rate:.1f} [{100 * r.found_lo:.1f}, {100 * r.found_hi:.1f}] ({int(r.pairs)}), "
+            f"{int(r.wrong_merges)} wrong, {int(r.false_merges)} false; in the cell, bound {int(r.cell_bound)}: "
+            f"{100 * r.cell_found_rate:.1f} %, {int(r.cell_false_merges)} false")
 
 
 def equal_rate_figure(df: pd.DataFrame, out: Path) -> list[Path]:
@@ -703,13 +796,15 @@ def main(argv=None) -> None:
     ap.add_argument("--calibrate", action="store_true", help="set the peers' thresholds instead")
     ap.add_argument("--scaling", action="store_true", help="time per merge against map size instead")
     ap.add_argument("--equal-rate", action="store_true", help="every method at one false-merge rate per cell")
+    ap.add_argument("--one-bound", action="store_true", help="each peer with one bound per small-map size")
     ap.add_argument("--processes", type=int, default=2)
     ap.add_argument("--layout", choices=list(CELLS), default="strip")
     ap.add_argument("--methods", nargs="+", help="default: every available method")
     ap.add_argument("--pairs", type=int, help=f"related (and unrelated) pairs per cell at most (default: {PAIRS}, "
                                               f"{EQUAL_RATE_PAIRS} with --equal-rate)")
     ap.add_argument("--sizes", type=int, nargs="+", default=list(SCALING_SIZES))
-    ap.add_argument("--landmarks", type=int, nargs="+", help="--equal-rate: only the cells of these map sizes")
+    ap.add_argument("--landmarks", type=int, nargs="+",
+                    help="--equal-rate, --one-bound: only the cells of these map sizes")
     ap.add_argument("--time-limit", type=float, default=120.0, help="seconds a merge may take (--scaling)")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
@@ -717,6 +812,8 @@ def main(argv=None) -> None:
         df = calibrate(args.out, args.processes, args.methods)
     elif args.equal_rate:
         df = equal_rate(args.out, args.processes, args.methods, args.pairs or EQUAL_RATE_PAIRS, args.landmarks)
+    elif args.one_bound:
+        df = one_bound(args.out, args.processes, args.methods, args.pairs or EQUAL_RATE_PAIRS, args.landmarks)
     elif args.scaling:
         df = scaling(args.out, args.sizes, args.time_limit, args.methods)
     else:

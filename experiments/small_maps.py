@@ -74,12 +74,15 @@ Checks beside ``experiments.detector``'s tables (``stages``), chosen with
    wrong merges on ``--related`` related pairs (seeds 0+k), beside
    consensus and the best peer of ``--peers``;
 9. ``reference``: no merging. Per small-map cell (up to 20 landmarks) of
-   ``results/peers/equal_rate.csv`` (``--peers``), consensus beside the
-   best outside peer at one false-merge rate and the exhaustive detector
-   at 1e-3 (``limit.csv`` in ``--out``, strip layout, on its own pairs,
-   with consensus's find on them): found rates with their intervals, the
-   ratios, and whether consensus is ahead, level (intervals overlap) or
-   behind the peer;
+   ``results/peers/equal_rate.csv`` (``--peers``), consensus and the
+   default ``consensus_count`` (the count check's ``count.csv`` in
+   ``--out``) beside the best outside peer at one false-merge rate, the
+   best peer with one bound per map size (``--one-bound-peers``, a peer
+   it lacks at its rate in the cell) and the exhaustive detector at 1e-3
+   (``limit.csv`` in ``--out``, strip layout, on its own pairs, with
+   consensus's find on them): found rates with their intervals, the
+   ratios, and whether each of ours is ahead, level (intervals overlap)
+   or behind the peer;
 10. ``oracle_count``: where the default's remaining power goes. On the
     ``--related`` related pairs (seeds 0+k), the landmarks associated
     (``association.associate_batch``) under the fit on every true
@@ -244,12 +247,31 @@ def peer_columns(equal_rate: pd.DataFrame, layout: str, n: int, snr: float, inte
             "peer_hi": best.found_hi, **{column: verdict(lo, hi, best) for column, (lo, hi) in intervals.items()}}
 
 
-def reference_table(equal_rate: pd.DataFrame, limit: pd.DataFrame) -> pd.DataFrame:
-    """consensus against the best peer at one false-merge rate and the detector at 1e-3, per small-map cell."""
+def one_bound_peer(cell: pd.DataFrame, one_bound: pd.DataFrame) -> pd.Series:
+    """The peer of most found in one cell of ``experiments.peers --equal-rate``'s table when each peer has one
+    bound per map size: its rate in ``experiments.peers --one-bound``'s table, or for a peer that table lacks
+    its rate at the cell's own bound (``source`` "cell"), which one bound per size can only lower."""
+    rows = []
+    for peer in cell[(cell.method != "consensus") & (cell.pairs > 0)].itertuples():
+        one = one_bound[(one_bound.method == peer.method) & (one_bound.layout == peer.layout) &
+                        (one_bound.n_landmarks == peer.n_landmarks) & (one_bound.snr_db == peer.snr_db)]
+        r = one.iloc[0] if len(one) else peer
+        rows.append({"method": peer.method, "source": "one bound" if len(one) else "cell",
+                     "found_rate": r.found_rate, "found_lo": r.found_lo, "found_hi": r.found_hi})
+    peers = pd.DataFrame(rows)
+    return peers.loc[peers.found_rate.idxmax()]
+
+
+def reference_table(equal_rate: pd.DataFrame, limit: pd.DataFrame, count: pd.DataFrame,
+                    one_bound: pd.DataFrame) -> pd.DataFrame:
+    """consensus and the default ``consensus_count`` (``count``: the count check's table) against the best peer
+    at one false-merge rate, the best peer with one bound per map size (``one_bound_peer``) and the detector at
+    1e-3, per small-map cell."""
     rows = []
     small = equal_rate[equal_rate.n_landmarks <= 20]
     for (layout, n, snr), cell in small.groupby(["layout", "n_landmarks", "snr_db"]):
-        ours, best = cell[cell.method == "consensus"].iloc[0], best_peer(cell)
+        ours, best, one = cell[cell.method == "consensus"].iloc[0], best_peer(cell), one_bound_peer(cell, one_bound)
+        default = cell_rows(count, layout, n, snr).iloc[0]
         found = cell_rows(limit, layout, n, snr)
         # The detector's pairs are its own (seeds 100000+), with consensus's find on them; NaN without a row.
         detector = found.iloc[0] if len(found) else pd.Series({"found_rate": np.nan, "consensus_found_rate": np.nan})
@@ -260,6 +282,13 @@ def reference_table(equal_rate: pd.DataFrame, limit: pd.DataFrame) -> pd.DataFra
                      "peer_lo": best.found_lo, "peer_hi": best.found_hi,
                      "vs_peer": verdict(ours.found_lo, ours.found_hi, best),
                      "ratio_to_peer": _ratio(ours.found_rate, best.found_rate),
+                     "default_found": default.found_rate, "default_lo": default.found_lo,
+                     "default_hi": default.found_hi, "default_holdout_false": int(default.false_merges),
+                     "default_holdout_pairs": int(default.holdout_pairs),
+                     "default_vs_peer": verdict(default.found_lo, default.found_hi, best),
+                     "one_bound_peer": f"{one.method} ({one.source})", "one_bound_peer_found": one.found_rate,
+                     "one_bound_peer_lo": one.found_lo, "one_bound_peer_hi": one.found_hi,
+                     "default_vs_one_bound_peer": verdict(default.found_lo, default.found_hi, one),
                      "detector_found": detector.found_rate,
                      "consensus_found_detector_pairs": detector.consensus_found_rate,
                      "ratio_to_detector": _ratio(detector.consensus_found_rate, detector.found_rate),
@@ -574,6 +603,8 @@ def main(argv=None) -> None:
     parser.add_argument("--out", default="results/detector/small")
     parser.add_argument("--peers", default="results/peers/equal_rate.csv",
                         help="experiments.peers --equal-rate's table, for the reference check")
+    parser.add_argument("--one-bound-peers", default="results/peers/one_bound.csv",
+                        help="experiments.peers --one-bound's table, for the reference check")
     parser.add_argument("--checks", nargs="+",
                         choices=("bound", "holdout", "calibrated", "acceptance", "levels", "statistics",
                                  "count_levels", "count", "reference", "oracle_count"),
@@ -668,11 +699,12 @@ def main(argv=None) -> None:
         for path in save_table(table, out / "oracle_count"):
             print(path)
     if "reference" in args.checks:
-        missing = [path for path in (Path(args.peers), out / "limit.csv") if not path.is_file()]
+        inputs = (Path(args.peers), out / "limit.csv", out / "count.csv", Path(args.one_bound_peers))
+        missing = [path for path in inputs if not path.is_file()]
         if missing:
             raise SystemExit(f"reference check: {missing[0]} not found (run experiments.peers --equal-rate and "
-                             f"experiments.detector --out {out} first)")
-        table = reference_table(pd.read_csv(args.peers), pd.read_csv(out / "limit.csv"))
+                             f"--one-bound, experiments.detector --out {out} and this module's count check first)")
+        table = reference_table(*map(pd.read_csv, inputs))
         for path in save_table(table, out / "reference"):
             print(path)
 

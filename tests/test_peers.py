@@ -86,6 +86,28 @@ def test_equal_rate_bound_lets_through_at_most_its_share_of_tuning_pairs():
     assert row.shipped_false_merges == sum(k >= shipped for k in [8, 4, 0, 7, 3])
 
 
+def test_one_bound_is_the_largest_cell_bound_of_the_size():
+    import pandas as pd
+
+    from experiments import peers
+
+    def rows(snr, kind, pairs, found=None):
+        found = [False] * len(pairs) if found is None else found
+        return pd.DataFrame({"method": "cpd", "layout": "strip", "n_landmarks": 10, "snr_db": snr, "kind": kind,
+                             "seed": range(len(pairs)), "merged": True, "found": found, "pairs": pairs})
+
+    # Cell bounds 8 (10 dB: two tuning pairs reach 7) and 4 (20 dB): one bound of 8 for both cells.
+    table = peers.one_bound_table(pd.concat([
+        rows(10.0, "tuning", [3] * 998 + [7, 7]), rows(20.0, "tuning", [3] * 999 + [4]),
+        rows(10.0, "related", [8, 6], [True, True]), rows(10.0, "unrelated", [2, 3]),
+        rows(20.0, "related", [9, 6, 5, 8], [True, True, False, False]), rows(20.0, "unrelated", [5, 8, 1, 0])]))
+    cell = table.set_index("snr_db").loc[20.0]
+    assert (cell.bound, cell.bound_cell, cell.cell_bound) == (8, "strip 10 dB", 4)
+    assert (cell.found_rate, cell.wrong_merges, cell.false_merges) == (0.25, 1, 1)
+    assert (cell.cell_found_rate, cell.cell_wrong_merges, cell.cell_false_merges) == (0.5, 2, 2)
+    assert table.set_index("snr_db").loc[10.0].found_rate == 0.5
+
+
 def test_a_rerun_of_some_methods_keeps_the_other_methods_rows(tmp_path):
     import pandas as pd
 
