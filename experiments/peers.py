@@ -4,6 +4,7 @@
     python -m experiments.peers --scaling [--sizes 100 1000 10000] [--time-limit 120]   # time per merge
     python -m experiments.peers --calibrate [--methods M ...] [--out results/peers]   # acceptance thresholds
     python -m experiments.peers --equal-rate [--pairs 1000]   # every method at one false-merge rate per cell
+    python -m experiments.peers --one-bound [--landmarks 10 20]   # each peer with one bound per map size
 
 Every method sees the same pairs: ``make_pair(n, 0.75, snr, rng=seed,
 layout=layout)`` with seeds 0, 1, ... for the related pairs and the same
@@ -61,6 +62,16 @@ test. Each chunk of pairs is kept in ``EQUAL_RATE_ROWS`` (keyed by the
 digest of the library sources the method runs and of the code that
 computes a chunk) as soon as it is done, so a stopped run resumes. Writes
 ``equal_rate.csv`` / ``.md`` and the figure ``equal_rate.png`` / ``.pdf``.
+
+``--one-bound`` holds each installed peer to ``consensus_count``'s rule
+instead: one bound per map size, whatever the SNR and layout. On the
+small-map cells ``ONE_BOUND_CELLS`` (10 dB included, as for the count
+levels) it counts inliers on the same tuning, related and unrelated pairs
+as ``--equal-rate`` (its chunks, shared), sets the bound of each cell as
+there, and per size and floor of ``ONE_BOUND_FLOORS`` takes the largest
+bound of the cells from that SNR up. Writes ``one_bound.csv`` / ``.md``:
+found rate, wrong and false merges at that bound and at the cell's own,
+keeping the rows of peers and sizes not run.
 """
 
 from __future__ import annotations
@@ -151,6 +162,9 @@ NOT_RUN = {("astroalign", 100): "not run: 0.35-5 s a merge",
 #: map size, as ``consensus_count`` has one level per size: the largest of its cell bounds at that size.
 ONE_BOUND_CELLS = [(layout, n, snr) for layout in ("strip", "interleaved") for n in (10, 20)
                    for snr in (10, 15, 20, 25, 30, 35, 40)]
+#: The lowest SNR (dB) each one bound must hold from: 10 dB, as the count levels, and 15 dB, from where the
+#: found rates are compared (a user who knows no more than that of their maps).
+ONE_BOUND_FLOORS = (10.0, 15.0)
 #: Pairs per job of ``--equal-rate`` (its unit of parallelism and of resumption).
 EQUAL_RATE_CHUNK = 100
 #: Where ``--equal-rate`` keeps each chunk's per-pair outcomes (not committed).
@@ -635,31 +649,36 @@ def equal_rate(out: Path, processes: int = 2, methods=None, pairs: int = EQUAL_R
     return df
 
 
-def one_bound_table(rows: pd.DataFrame) -> pd.DataFrame:
-    """Per peer and cell of ``rows`` (``chunk_rows``): the found rate, wrong and false merges at its one bound
-    per map size (the largest of its cell bounds at that size, ``bound_cell`` the cell that sets it), and at
-    its bound in the cell (``cell_*``)."""
+def one_bound_table(rows: pd.DataFrame, floors=ONE_BOUND_FLOORS) -> pd.DataFrame:
+    """Per floor of ``floors`` (``snr_from``), peer and cell of ``rows`` (``chunk_rows``) from that SNR up: the
+    found rate, wrong and false merges at the peer's one bound per map size (the largest of its cell bounds at
+    that size from the floor up, ``bound_cell`` the cell that sets it), and at its bound in the cell
+    (``cell_*``)."""
     keys = ["method", "layout", "n_landmarks", "snr_db"]
     cells = {key: cell for key, cell in rows.groupby(keys, observed=True)}
     cell_bound = {key: tuned_bound(cell[cell.kind == "tuning"]["pairs"]) for key, cell in cells.items()}
-    one = {}
-    for (method, layout, n, snr), bound in cell_bound.items():
-        if bound > one.get((method, n), (0,))[0]:
-            one[method, n] = (bound, f"{layout} {snr:g} dB")
     out = []
-    for key, cell in cells.items():
-        method, layout, n, snr = key
-        rel, unrel = cell[cell.kind == "related"], cell[cell.kind == "unrelated"]
-        row = dict(zip(keys, key), pairs=len(rel), bound=one[method, n][0], bound_cell=one[method, n][1],
-                   cell_bound=cell_bound[key])
-        for prefix, bound in (("", row["bound"]), ("cell_", row["cell_bound"])):
-            accepted = rel["pairs"] >= bound
-            found = int((accepted & rel.found).sum())
-            lo, hi = wilson(found, len(rel))
-            row.update({f"{prefix}found_rate": found / len(rel), f"{prefix}found_lo": float(lo),
-                        f"{prefix}found_hi": float(hi), f"{prefix}wrong_merges": int((accepted & ~rel.found).sum()),
-                        f"{prefix}false_merges": int((unrel["pairs"] >= bound).sum())})
-        out.append(row)
+    for floor in floors:
+        one = {}
+        for (method, layout, n, snr), bound in cell_bound.items():
+            if snr >= floor and bound > one.get((method, n), (0,))[0]:
+                one[method, n] = (bound, f"{layout} {snr:g} dB")
+        for key, cell in cells.items():
+            method, layout, n, snr = key
+            if snr < floor:
+                continue
+            rel, unrel = cell[cell.kind == "related"], cell[cell.kind == "unrelated"]
+            row = dict(zip(keys, key), snr_from=floor, pairs=len(rel), bound=one[method, n][0],
+                       bound_cell=one[method, n][1], cell_bound=cell_bound[key])
+            for prefix, bound in (("", row["bound"]), ("cell_", row["cell_bound"])):
+                accepted = rel["pairs"] >= bound
+                found = int((accepted & rel.found).sum())
+                lo, hi = wilson(found, len(rel))
+                row.update({f"{prefix}found_rate": found / len(rel), f"{prefix}found_lo": float(lo),
+                            f"{prefix}found_hi": float(hi),
+                            f"{prefix}wrong_merges": int((accepted & ~rel.found).sum()),
+                            f"{prefix}false_merges": int((unrel["pairs"] >= bound).sum())})
+            out.append(row)
     return pd.DataFrame(out)
 
 
@@ -679,7 +698,7 @@ def one_bound(out: Path, processes: int = 2, methods=None, pairs: int = EQUAL_RA
         old = pd.read_csv(path)
         rerun = old.set_index(["method", "n_landmarks"]).index.isin(df.set_index(["method", "n_landmarks"]).index)
         df = pd.concat([old[~rerun], df], ignore_index=True)
-    df = df.sort_values(["n_landmarks", "layout", "snr_db", "method"], ignore_index=True)
+    df = df.sort_values(["n_landmarks", "layout", "snr_db", "method", "snr_from"], ignore_index=True)
     out.mkdir(parents=True, exist_ok=True)
     df.to_csv(path, index=False, float_format="%.4g")
     write_one_bound(df, out / "one_bound.md")
@@ -689,28 +708,35 @@ def one_bound(out: Path, processes: int = 2, methods=None, pairs: int = EQUAL_RA
 def write_one_bound(df: pd.DataFrame, path: Path) -> None:
     """one_bound.md: one row per cell, one column per peer."""
     methods = list(dict.fromkeys(df["method"]))
-    bounds = df.drop_duplicates(["method", "n_landmarks"])
+    bounds = df.drop_duplicates(["method", "n_landmarks", "snr_from"])
     lines = [(f"Each peer with one acceptance bound per map size, as `consensus_count` has one level per size: "
-              f"the largest of its bounds in the cells of that size (each the least inlier count that lets at most "
-              f"{EQUAL_RATE:g} of the cell's {EQUAL_RATE_TUNING:,} unrelated tuning pairs through, seeds "
-              f"{CALIBRATION_SEED:,} + i), so that it holds whatever the SNR and layout of a user's maps. "
-              f"Transform found on related pairs, % [95 % Wilson interval] (pairs), wrong merges, false merges on "
-              f"as many unrelated pairs (seeds 0, 1, ...); after them, the same at the peer's bound in the cell "
-              f"(results/peers/equal_rate.md, which knows the cell's SNR)."), "",
-             "One bound per size: " + "; ".join(f"{r.method} at {r.n_landmarks} landmarks: {r.bound} inliers "
-                                                 f"(set by {r.bound_cell})" for r in bounds.itertuples()), "",
+              f"the largest of its bounds in the cells of that size from an SNR up, both layouts (each cell's the "
+              f"least inlier count that lets at most {EQUAL_RATE:g} of the cell's {EQUAL_RATE_TUNING:,} unrelated "
+              f"tuning pairs through, seeds {CALIBRATION_SEED:,} + i), so that it holds whatever the SNR and "
+              f"layout of a user's maps above that SNR: from 10 dB, as the count levels, and from 15 dB. "
+              f"Transform found on related pairs, % [95 % Wilson interval] (pairs), wrong merges and false merges "
+              f"on as many unrelated pairs (seeds 0, 1, ...) at each, and the found rate at the peer's bound in "
+              f"the cell (results/peers/equal_rate.md, which knows the cell's SNR)."), "",
+             "One bound per size: " + "; ".join(f"{r.method} at {r.n_landmarks} landmarks from {r.snr_from:g} dB: "
+                                                 f"{r.bound} inliers (set by {r.bound_cell})"
+                                                 for r in bounds.itertuples()), "",
              "| layout, n, SNR | " + " | ".join(methods) + " |", "|---|" + "---|" * len(methods)]
     for (n, layout, snr), cell in df.groupby(["n_landmarks", "layout", "snr_db"], sort=False):
-        by = cell.set_index("method")
-        parts = [_one_bound_cell(by.loc[m]) if m in by.index else "not run" for m in methods]
+        parts = []
+        for method in methods:
+            rows = cell[cell.method == method]
+            if not len(rows):
+                parts.append("not run")
+                continue
+            first = rows.iloc[0]
+            parts.append("; ".join([f"from {r.snr_from:g} dB, bound {int(r.bound)}: {100 * r.found_rate:.1f} "
+                                    f"[{100 * r.found_lo:.1f}, {100 * r.found_hi:.1f}] ({int(r.pairs)}), "
+                                    f"{int(r.wrong_merges)} wrong, {int(r.false_merges)} false"
+                                    for r in rows.itertuples()] +
+                                   [f"in the cell, bound {int(first.cell_bound)}: {100 * first.cell_found_rate:.1f} "
+                                    f"%, {int(first.cell_false_merges)} false"]))
         lines.append(f"| {layout}, {n}, {snr:g} dB | " + " | ".join(parts) + " |")
     path.write_text("\n".join(lines) + "\n")
-
-
-def _one_bound_cell(r: pd.Series) -> str:
-    return (f"{100 * r.found_rate:.1f} [{100 * r.found_lo:.1f}, {100 * r.found_hi:.1f}] ({int(r.pairs)}), "
-            f"{int(r.wrong_merges)} wrong, {int(r.false_merges)} false; in the cell, bound {int(r.cell_bound)}: "
-            f"{100 * r.cell_found_rate:.1f} %, {int(r.cell_false_merges)} false")
 
 
 def equal_rate_figure(df: pd.DataFrame, out: Path) -> list[Path]:

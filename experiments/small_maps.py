@@ -249,8 +249,9 @@ def peer_columns(equal_rate: pd.DataFrame, layout: str, n: int, snr: float, inte
 
 def one_bound_peer(cell: pd.DataFrame, one_bound: pd.DataFrame) -> pd.Series:
     """The peer of most found in one cell of ``experiments.peers --equal-rate``'s table when each peer has one
-    bound per map size: its rate in ``experiments.peers --one-bound``'s table, or for a peer that table lacks
-    its rate at the cell's own bound (``source`` "cell"), which one bound per size can only lower."""
+    bound per map size: its rate in ``one_bound`` (``experiments.peers --one-bound``'s rows of one floor), or
+    for a peer that table lacks its rate at the cell's own bound (``source`` "cell"), which one bound per size
+    can only lower."""
     rows = []
     for peer in cell[(cell.method != "consensus") & (cell.pairs > 0)].itertuples():
         one = one_bound[(one_bound.method == peer.method) & (one_bound.layout == peer.layout) &
@@ -266,12 +267,23 @@ def reference_table(equal_rate: pd.DataFrame, limit: pd.DataFrame, count: pd.Dat
                     one_bound: pd.DataFrame) -> pd.DataFrame:
     """consensus and the default ``consensus_count`` (``count``: the count check's table) against the best peer
     at one false-merge rate, the best peer with one bound per map size (``one_bound_peer``) and the detector at
-    1e-3, per small-map cell."""
+    1e-3, per small-map cell. The one bound holds from each floor of ``one_bound`` (``snr_from``) up: columns
+    ``*_from_<floor>db``."""
     rows = []
     small = equal_rate[equal_rate.n_landmarks <= 20]
+    floors = sorted(one_bound.snr_from.unique())
     for (layout, n, snr), cell in small.groupby(["layout", "n_landmarks", "snr_db"]):
-        ours, best, one = cell[cell.method == "consensus"].iloc[0], best_peer(cell), one_bound_peer(cell, one_bound)
+        ours, best = cell[cell.method == "consensus"].iloc[0], best_peer(cell)
         default = cell_rows(count, layout, n, snr).iloc[0]
+        one_bound_columns = {}
+        for floor in floors:
+            one = one_bound_peer(cell, one_bound[one_bound.snr_from == floor])
+            one_bound_columns.update({
+                f"one_bound_peer_from_{floor:g}db": f"{one.method} ({one.source})",
+                f"one_bound_peer_found_from_{floor:g}db": one.found_rate,
+                f"one_bound_peer_lo_from_{floor:g}db": one.found_lo,
+                f"one_bound_peer_hi_from_{floor:g}db": one.found_hi,
+                f"default_vs_one_bound_peer_from_{floor:g}db": verdict(default.found_lo, default.found_hi, one)})
         found = cell_rows(limit, layout, n, snr)
         # The detector's pairs are its own (seeds 100000+), with consensus's find on them; NaN without a row.
         detector = found.iloc[0] if len(found) else pd.Series({"found_rate": np.nan, "consensus_found_rate": np.nan})
@@ -286,9 +298,7 @@ def reference_table(equal_rate: pd.DataFrame, limit: pd.DataFrame, count: pd.Dat
                      "default_hi": default.found_hi, "default_holdout_false": int(default.false_merges),
                      "default_holdout_pairs": int(default.holdout_pairs),
                      "default_vs_peer": verdict(default.found_lo, default.found_hi, best),
-                     "one_bound_peer": f"{one.method} ({one.source})", "one_bound_peer_found": one.found_rate,
-                     "one_bound_peer_lo": one.found_lo, "one_bound_peer_hi": one.found_hi,
-                     "default_vs_one_bound_peer": verdict(default.found_lo, default.found_hi, one),
+                     **one_bound_columns,
                      "detector_found": detector.found_rate,
                      "consensus_found_detector_pairs": detector.consensus_found_rate,
                      "ratio_to_detector": _ratio(detector.consensus_found_rate, detector.found_rate),

@@ -125,15 +125,18 @@ def test_small_maps_reference_puts_consensus_beside_the_best_peer_and_the_detect
     count = pd.DataFrame({"layout": ["strip"], "n_landmarks": [10], "snr_db": [20.0], "found_rate": [0.45],
                           "found_lo": [0.42], "found_hi": [0.48], "false_merges": [1], "holdout_pairs": [10000]})
     # CPD with one bound per size finds less than CLIPPER, which that table lacks: CLIPPER at its cell rate.
-    one_bound = pd.DataFrame({"method": ["cpd"], "layout": ["strip"], "n_landmarks": [10], "snr_db": [20.0],
-                              "found_rate": [0.30], "found_lo": [0.26], "found_hi": [0.34]})
+    one_bound = pd.DataFrame({"method": "cpd", "layout": "strip", "n_landmarks": 10, "snr_db": 20.0,
+                              "snr_from": [10.0, 15.0], "found_rate": [0.30, 0.50], "found_lo": [0.26, 0.46],
+                              "found_hi": [0.34, 0.54]})
     table = small_maps.reference_table(peers, limit, count, one_bound)
     assert len(table) == 1  # 100 landmarks are not a small map
     r = table.iloc[0]
     assert (r.best_peer, r.peer_pairs, r.vs_peer) == ("cpd", 500, "behind")
     assert r.ratio_to_peer == pytest.approx(0.40 / 0.53) and r.ratio_to_detector == pytest.approx(2.0)
     assert (r.default_found, r.default_holdout_false, r.default_vs_peer) == (0.45, 1, "behind")
-    assert (r.one_bound_peer, r.one_bound_peer_found, r.default_vs_one_bound_peer) == ("clipper (cell)", 0.40, "level")
+    assert (r.one_bound_peer_from_10db, r.one_bound_peer_found_from_10db,
+            r.default_vs_one_bound_peer_from_10db) == ("clipper (cell)", 0.40, "level")
+    assert (r.one_bound_peer_from_15db, r.default_vs_one_bound_peer_from_15db) == ("cpd (one bound)", "level")
 
 
 def test_small_maps_statistics_check_holds_each_statistic_to_the_tuning_rate(tmp_path, monkeypatch):

@@ -101,11 +101,15 @@ def test_one_bound_is_the_largest_cell_bound_of_the_size():
         rows(10.0, "tuning", [3] * 998 + [7, 7]), rows(20.0, "tuning", [3] * 999 + [4]),
         rows(10.0, "related", [8, 6], [True, True]), rows(10.0, "unrelated", [2, 3]),
         rows(20.0, "related", [9, 6, 5, 8], [True, True, False, False]), rows(20.0, "unrelated", [5, 8, 1, 0])]))
-    cell = table.set_index("snr_db").loc[20.0]
+    cells = table.set_index(["snr_from", "snr_db"])
+    cell = cells.loc[10.0, 20.0]
     assert (cell.bound, cell.bound_cell, cell.cell_bound) == (8, "strip 10 dB", 4)
     assert (cell.found_rate, cell.wrong_merges, cell.false_merges) == (0.25, 1, 1)
     assert (cell.cell_found_rate, cell.cell_wrong_merges, cell.cell_false_merges) == (0.5, 2, 2)
-    assert table.set_index("snr_db").loc[10.0].found_rate == 0.5
+    assert cells.loc[10.0, 10.0].found_rate == 0.5
+    # From 15 dB the 10 dB cell neither sets the bound nor gets a row.
+    assert len(table[table.snr_from == 15.0]) == 1
+    assert (cells.loc[15.0, 20.0].bound, cells.loc[15.0, 20.0].found_rate) == (4, 0.5)
 
 
 def test_a_rerun_of_some_methods_keeps_the_other_methods_rows(tmp_path):
