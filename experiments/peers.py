@@ -592,6 +592,15 @@ def tuned_bound(inliers) -> int:
     return max(MIN_MATCHED_LANDMARKS, int(top[allowed]) + 1 if allowed < len(top) else 0)
 
 
+def accepted_rates(rel: pd.DataFrame, accepted_rel, accepted_unrel) -> dict:
+    """Transform found (count, rate and its Wilson interval) and wrong merges among the related pairs ``rel``
+    a rule accepts (``accepted_rel``), and false merges among the unrelated ones it accepts."""
+    found = int((accepted_rel & rel.found).sum())
+    lo, hi = wilson(found, len(rel))
+    return {"found": found, "found_rate": found / len(rel), "found_lo": float(lo), "found_hi": float(hi),
+            "wrong_merges": int((accepted_rel & ~rel.found).sum()), "false_merges": int(accepted_unrel.sum())}
+
+
 def equal_rate_table(rows: pd.DataFrame, oracle: dict) -> pd.DataFrame:
     """Per cell and method: the found rate, wrong and false merges at the cell's bound (a peer's: the least
     inlier count that lets at most ``EQUAL_RATE`` of its tuning pairs through), and a peer's at its shipped
@@ -609,10 +618,7 @@ def equal_rate_table(rows: pd.DataFrame, oracle: dict) -> pd.DataFrame:
             accepted_rel, accepted_unrel = rel["pairs"] >= bound, unrel["pairs"] >= bound
         else:
             accepted_rel, accepted_unrel = rel.merged, unrel.merged
-        found = int((accepted_rel & rel.found).sum())
-        lo, hi = wilson(found, len(rel))
-        row.update(found=found, found_rate=found / len(rel), found_lo=float(lo), found_hi=float(hi),
-                   wrong_merges=int((accepted_rel & ~rel.found).sum()), false_merges=int(accepted_unrel.sum()),
+        row.update(accepted_rates(rel, accepted_rel, accepted_unrel),
                    correspondence_oracle_found=oracle[layout, n, snr])
         out.append(row)
     df = pd.DataFrame(out)
@@ -671,13 +677,8 @@ def one_bound_table(rows: pd.DataFrame, floors=ONE_BOUND_FLOORS) -> pd.DataFrame
             row = dict(zip(keys, key), snr_from=floor, pairs=len(rel), bound=one[method, n][0],
                        bound_cell=one[method, n][1], cell_bound=cell_bound[key])
             for prefix, bound in (("", row["bound"]), ("cell_", row["cell_bound"])):
-                accepted = rel["pairs"] >= bound
-                found = int((accepted & rel.found).sum())
-                lo, hi = wilson(found, len(rel))
-                row.update({f"{prefix}found_rate": found / len(rel), f"{prefix}found_lo": float(lo),
-                            f"{prefix}found_hi": float(hi),
-                            f"{prefix}wrong_merges": int((accepted & ~rel.found).sum()),
-                            f"{prefix}false_merges": int((unrel["pairs"] >= bound).sum())})
+                rates = accepted_rates(rel, rel["pairs"] >= bound, unrel["pairs"] >= bound)
+                row.update({prefix + name: value for name, value in rates.items()})
             out.append(row)
     return pd.DataFrame(out)
 

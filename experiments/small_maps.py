@@ -248,19 +248,16 @@ def peer_columns(equal_rate: pd.DataFrame, layout: str, n: int, snr: float, inte
 
 
 def one_bound_peer(cell: pd.DataFrame, one_bound: pd.DataFrame) -> pd.Series:
-    """The peer of most found in one cell of ``experiments.peers --equal-rate``'s table when each peer has one
-    bound per map size: its rate in ``one_bound`` (``experiments.peers --one-bound``'s rows of one floor), or
-    for a peer that table lacks its rate at the cell's own bound (``source`` "cell"), which one bound per size
-    can only lower."""
-    rows = []
-    for peer in cell[(cell.method != "consensus") & (cell.pairs > 0)].itertuples():
-        one = one_bound[(one_bound.method == peer.method) & (one_bound.layout == peer.layout) &
-                        (one_bound.n_landmarks == peer.n_landmarks) & (one_bound.snr_db == peer.snr_db)]
-        r = one.iloc[0] if len(one) else peer
-        rows.append({"method": peer.method, "source": "one bound" if len(one) else "cell",
-                     "found_rate": r.found_rate, "found_lo": r.found_lo, "found_hi": r.found_hi})
-    peers = pd.DataFrame(rows)
-    return peers.loc[peers.found_rate.idxmax()]
+    """``best_peer`` of one cell of ``experiments.peers --equal-rate``'s table when each peer has one bound per
+    map size: its rate in ``one_bound`` (``experiments.peers --one-bound``'s rows of one floor), or for a peer
+    that table lacks its rate at the cell's own bound (``source`` "cell"), which one bound per size can only
+    lower."""
+    keys, rates = ["method", "layout", "n_landmarks", "snr_db"], ["found_rate", "found_lo", "found_hi"]
+    cell = cell.merge(one_bound[keys + rates], on=keys, how="left", suffixes=("", "_one_bound"))
+    has = cell.found_rate_one_bound.notna()
+    for rate in rates:
+        cell[rate] = cell[rate + "_one_bound"].where(has, cell[rate])
+    return best_peer(cell.assign(source=np.where(has, "one bound", "cell")))
 
 
 def reference_table(equal_rate: pd.DataFrame, limit: pd.DataFrame, count: pd.DataFrame,
